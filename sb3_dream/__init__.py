@@ -1,0 +1,6 @@
+"""sb3-dream: DREAM and RL² for Stable-Baselines3."""
+
+import dream_envs  # noqa: F401  (registers the meta-RL envs so env IDs resolve)
+from sb3_dream.version import __version__
+
+__all__ = ["__version__"]
