@@ -1,0 +1,384 @@
+"""The trial API: turn an instruction-based meta-RL (IMRL) problem family into Gymnasium episodes.
+
+One Gymnasium episode is one *trial* (paper, Section 2 and 3): in a problem T drawn from a
+split, the agent plays one exploration episode (reward-free and instruction-free by default),
+then ``n_exec_episodes`` execution episodes, each with a freshly sampled instruction i and
+rewards R_T(s, i). ``terminated`` ends the trial.
+
+A new meta-RL environment subclasses :class:`TrialEnv` and defines the problem family:
+
+* the problem set and its splits: :meth:`TrialEnv._split_problem_ids`;
+* the instruction distribution of a problem: :meth:`TrialEnv._sample_instruction`
+  (and, optionally, :meth:`TrialEnv._check_instruction` for pinned instructions);
+* the inner MDP given (problem, instruction): :meth:`TrialEnv._set_problem`,
+  :meth:`TrialEnv._inner_reset`, :meth:`TrialEnv._inner_step` and optionally
+  :meth:`TrialEnv._end_episode_reward`;
+* a picture: :meth:`TrialEnv._render_frame`.
+
+Everything else (the Dict observation, the ``info`` keys, pinning through ``reset(options=...)``,
+seeding, horizons, the end-episode action, validation of the arguments) lives here, so every
+env obeys the same contract (see the project's design notes):
+
+Observation (a ``gymnasium.spaces.Dict``):
+
+=================  ===========================================================================
+``obs``            the inner state of the problem family
+``instruction``    MultiDiscrete; all zeros (the reserved "none" value) in reward-free exploration
+``phase``          Discrete(2): 0 exploration episode, 1 execution episode
+``episode_start``  Discrete(2): 1 on the first step of each inner episode
+``prev_action``    Discrete(n_actions + 1): 0 at the trial's start, else the previous action + 1
+``prev_reward``    Box(1,) float32: the previous step's reward (0 in reward-free exploration)
+=================  ===========================================================================
+
+``prev_action`` and ``prev_reward`` carry across inner-episode boundaries (the first step of an
+execution episode sees the last action and reward of the episode before), as in RL²; they are
+zero only at the start of a trial.
+
+``info`` holds, at reset and after every step: ``problem_id`` (privileged: never in the
+observation), ``phase`` and ``episode_index`` (0 exploration, 1..N execution) of the episode that
+the returned observation belongs to. On the last step of an inner episode it also holds
+``episode_end=True``, ``episode_return``, ``episode_length``, ``episode_phase`` and ``final_obs``
+(that episode's last inner ``obs``: the step already returns the next episode's first
+observation). On the trial's last step it holds ``execution_returns``, the list of the N
+execution returns.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, Dict, Optional, Sequence, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+SPLITS = ("train", "test", "all")
+EXPLORATION, EXECUTION = 0, 1
+
+
+def check_choice(name: str, value: Any, choices: Sequence[Any]) -> Any:
+    """Raise a ``ValueError`` naming ``name`` and the accepted values unless ``value`` is one of them."""
+    if value not in choices:
+        raise ValueError(f"{name}={value!r} is not valid; accepted values: {', '.join(map(repr, choices))}")
+    return value
+
+
+def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+class TrialEnv(gym.Env, ABC):
+    """Base class of the IMRL trial environments.
+
+    :param inner_observation_space: the space of the inner state ``obs``.
+    :param instruction_nvec: sizes of the instruction's dimensions (value 0 of each means "none").
+    :param n_actions: number of actions (``Discrete(n_actions)``).
+    :param end_episode_action: the action that ends the current inner episode at once
+        (the paper's a_term), or ``None`` if the family has none.
+    :param split: which problems (and instructions) are sampled: "train", "test" or "all".
+    :param n_exec_episodes: the number N of execution episodes per trial.
+    :param horizon: the inner-episode horizon (steps per exploration or execution episode).
+    :param reward_free_exploration: if True (the paper's IMRL setting) the exploration episode has
+        no instruction and no rewards; if False it gets an instruction and its rewards (the paper's
+        "dashed line" variant), which then count in the step rewards and so in the trial's return.
+    :param render_mode: ``None`` or ``"rgb_array"``.
+    :param reward_bound: a bound on the absolute value of one step's reward (the bounds of
+        ``prev_reward``).
+    """
+
+    metadata: Dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 4}
+
+    def __init__(
+        self,
+        *,
+        inner_observation_space: spaces.Space,
+        instruction_nvec: Sequence[int],
+        n_actions: int,
+        end_episode_action: Optional[int],
+        split: str = "train",
+        n_exec_episodes: int = 1,
+        horizon: int = 20,
+        reward_free_exploration: bool = True,
+        render_mode: Optional[str] = None,
+        reward_bound: float = 10.0,
+    ) -> None:
+        super().__init__()
+        self.split = check_choice("split", split, SPLITS)
+        self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
+        self.horizon = check_positive_int("horizon", horizon)
+        if not isinstance(reward_free_exploration, (bool, np.bool_)):
+            raise ValueError(f"reward_free_exploration must be True or False, got {reward_free_exploration!r}")
+        self.reward_free_exploration = bool(reward_free_exploration)
+        self.render_mode = check_choice("render_mode", render_mode, [None, *self.metadata["render_modes"]])
+        self.n_actions = int(n_actions)
+        self.end_episode_action = end_episode_action
+        self.instruction_nvec = np.asarray(instruction_nvec, dtype=np.int64)
+
+        self.inner_observation_space = inner_observation_space
+        self.observation_space = spaces.Dict(
+            {
+                "obs": inner_observation_space,
+                "instruction": spaces.MultiDiscrete(self.instruction_nvec),
+                "phase": spaces.Discrete(2),
+                "episode_start": spaces.Discrete(2),
+                "prev_action": spaces.Discrete(self.n_actions + 1),
+                "prev_reward": spaces.Box(-reward_bound, reward_bound, shape=(1,), dtype=np.float32),
+            }
+        )
+        self.action_space = spaces.Discrete(self.n_actions)
+
+        self.problem_id: Optional[int] = None
+        self.instruction: Optional[np.ndarray] = None  # None while exploring reward-free
+        self._pinned_instruction: Optional[np.ndarray] = None
+        self._inner_obs: Optional[np.ndarray] = None
+        self._needs_reset = True
+
+    # ------------------------------------------------------------------ the problem family
+    @property
+    @abstractmethod
+    def n_problems(self) -> int:
+        """Number of problem IDs (IDs are 0 .. n_problems - 1); sizes a problem-ID embedding."""
+
+    @abstractmethod
+    def _split_problem_ids(self, split: str) -> np.ndarray:
+        """The sorted problem IDs of ``split`` ("train", "test" or "all")."""
+
+    @abstractmethod
+    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
+        """Draw an instruction for ``problem_id`` with ``self.np_random`` (respecting held-out ones)."""
+
+    def _check_instruction(self, problem_id: int, instruction: np.ndarray) -> None:
+        """Raise ``ValueError`` if a pinned ``instruction`` is not valid for ``problem_id``."""
+
+    @abstractmethod
+    def _set_problem(self, problem_id: int) -> None:
+        """Build the problem's MDP (e.g. which bus goes where)."""
+
+    @abstractmethod
+    def _inner_reset(self) -> np.ndarray:
+        """Start an inner episode in the current problem; return its first inner ``obs``.
+
+        ``self.instruction`` is the episode's instruction (``None`` in reward-free exploration)."""
+
+    @abstractmethod
+    def _inner_step(self, action: int) -> tuple[np.ndarray, float, bool]:
+        """One inner step (never the end-episode action): return ``(obs, reward, done)``.
+
+        The reward is R_T(s, i) for ``self.instruction``; ``done`` says the instruction is
+        fulfilled. With ``self.instruction is None`` (reward-free exploration) return reward 0
+        and ``done=False``."""
+
+    def _end_episode_reward(self, steps_remaining: int) -> float:
+        """Reward of the end-episode action when ``steps_remaining`` steps (this one included) were left."""
+        return 0.0
+
+    @abstractmethod
+    def _render_frame(self) -> np.ndarray:
+        """An HxWx3 uint8 picture of the current state."""
+
+    # ------------------------------------------------------------------ public helpers
+    def problem_ids(self, split: Optional[str] = None) -> np.ndarray:
+        """The problem IDs of ``split`` (default: this env's split)."""
+        split = self.split if split is None else check_choice("split", split, SPLITS)
+        return np.asarray(self._split_problem_ids(split), dtype=np.int64)
+
+    @property
+    def phase(self) -> int:
+        return EXPLORATION if self.episode_index == 0 else EXECUTION
+
+    # ------------------------------------------------------------------ Gymnasium API
+    def reset(
+        self, *, seed: Optional[int] = None, options: Optional[Dict[str, Any]] = None
+    ) -> tuple[Dict[str, Any], Dict[str, Any]]:
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"problem_id", "instruction"}
+        if unknown:
+            raise ValueError(f"options has unknown keys {sorted(unknown)}; accepted keys: 'problem_id', 'instruction'")
+
+        if options.get("problem_id") is not None:
+            problem_id = options["problem_id"]
+            if (
+                isinstance(problem_id, (bool, np.bool_))
+                or not isinstance(problem_id, (int, np.integer))
+                or not 0 <= problem_id < self.n_problems
+            ):
+                raise ValueError(
+                    f"options['problem_id']={problem_id!r} is out of range: "
+                    f"accepted values are integers 0 .. {self.n_problems - 1}"
+                )
+            self.problem_id = int(problem_id)
+        else:
+            self.problem_id = int(self.np_random.choice(self.problem_ids()))
+        self._set_problem(self.problem_id)
+
+        self._pinned_instruction = None
+        if options.get("instruction") is not None:
+            self._pinned_instruction = self._validate_instruction(options["instruction"])
+
+        self.episode_index = 0
+        self._prev_action = 0
+        self._prev_reward = 0.0
+        self._execution_returns: list[float] = []
+        self._start_inner_episode()
+        self._needs_reset = False
+        return self._observation(), self._info()
+
+    def step(self, action: Any) -> tuple[Dict[str, Any], SupportsFloat, bool, bool, Dict[str, Any]]:
+        if self._needs_reset:
+            raise RuntimeError("step() called before reset() or after the trial terminated; call reset() first")
+        if not self.action_space.contains(action):
+            try:
+                action = int(np.asarray(action).item())
+            except (TypeError, ValueError):
+                raise ValueError(f"action={action!r} is not valid; accepted values: integers 0 .. {self.n_actions - 1}")
+            if not 0 <= action < self.n_actions:
+                raise ValueError(f"action={action!r} is not valid; accepted values: integers 0 .. {self.n_actions - 1}")
+        action = int(action)
+
+        steps_remaining = self.horizon - self._t
+        if action == self.end_episode_action:
+            reward, done = self._end_episode_reward(steps_remaining), True
+        else:
+            self._inner_obs, reward, done = self._inner_step(action)
+        if self.instruction is None:
+            reward = 0.0  # reward-free exploration
+        reward = float(reward)
+        self._t += 1
+        self._episode_return += reward
+        self._prev_action, self._prev_reward = action + 1, reward
+
+        terminated = False
+        end_info: Dict[str, Any] = {}
+        if done or self._t >= self.horizon:
+            end_info = {
+                "episode_end": True,
+                "episode_return": self._episode_return,
+                "episode_length": self._t,
+                "episode_phase": self.phase,
+                "final_obs": np.array(self._inner_obs, copy=True),
+            }
+            if self.phase == EXECUTION:
+                self._execution_returns.append(self._episode_return)
+            if self.episode_index == self.n_exec_episodes:
+                terminated = True
+                self._needs_reset = True
+                end_info["execution_returns"] = list(self._execution_returns)
+            else:
+                self.episode_index += 1
+                self._start_inner_episode()
+        info = self._info()
+        info.update(end_info)
+        return self._observation(), reward, terminated, False, info
+
+    def render(self) -> Optional[np.ndarray]:
+        if self.render_mode == "rgb_array":
+            if self.problem_id is None:
+                raise RuntimeError("render() needs a trial: call reset() first")
+            return self._render_frame()
+        return None
+
+    # ------------------------------------------------------------------ internals
+    def _validate_instruction(self, instruction: Any) -> np.ndarray:
+        arr = np.asarray(instruction)
+        ok = (
+            arr.shape == self.instruction_nvec.shape
+            and np.issubdtype(arr.dtype, np.integer)
+            and bool(np.all(arr >= 1))
+            and bool(np.all(arr < self.instruction_nvec))
+        )
+        if not ok:
+            ranges = ", ".join(f"1..{n - 1}" for n in self.instruction_nvec)
+            raise ValueError(
+                f"options['instruction']={instruction!r} is not valid: expected {len(self.instruction_nvec)} "
+                f"integer(s) in [{ranges}] (0 means 'none' and cannot be pinned)"
+            )
+        arr = arr.astype(np.int64)
+        self._check_instruction(self.problem_id, arr)
+        return arr
+
+    def _start_inner_episode(self) -> None:
+        if self.phase == EXPLORATION and self.reward_free_exploration:
+            self.instruction = None
+        elif self._pinned_instruction is not None:
+            self.instruction = self._pinned_instruction.copy()
+        else:
+            self.instruction = np.asarray(self._sample_instruction(self.problem_id, self.split), dtype=np.int64)
+        self._t = 0
+        self._episode_return = 0.0
+        self._inner_obs = self._inner_reset()
+
+    def _observation(self) -> Dict[str, Any]:
+        instruction = np.zeros_like(self.instruction_nvec) if self.instruction is None else self.instruction.copy()
+        episode_start = int(self._t == 0)
+        return {
+            "obs": np.array(self._inner_obs, copy=True),
+            "instruction": instruction,
+            "phase": self.phase,
+            "episode_start": episode_start,
+            "prev_action": self._prev_action,
+            "prev_reward": np.array([self._prev_reward], dtype=np.float32),
+        }
+
+    def _info(self) -> Dict[str, Any]:
+        return {"problem_id": self.problem_id, "phase": self.phase, "episode_index": self.episode_index}
+
+
+PRIVILEGED_INFO_KEYS = ("problem_id",)
+
+
+def public_info(info: Dict[str, Any]) -> Dict[str, Any]:
+    """``info`` without the privileged keys: what an agent may use at meta-test."""
+    return {k: v for k, v in info.items() if k not in PRIVILEGED_INFO_KEYS}
+
+
+class ScriptedAgent(ABC):
+    """A scripted trial agent (the envs' oracles, the random baseline).
+
+    :meth:`act` sees the observation and the *public* part of the ``info`` returned with it (so it
+    can read ``final_obs`` at inner-episode boundaries), never the problem ID.
+    """
+
+    def reset(self) -> None:
+        """Forget everything: a new trial starts."""
+
+    @abstractmethod
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        """The action for ``obs``."""
+
+
+class RandomAgent(ScriptedAgent):
+    """Uniformly random actions (the end-episode action included), seeded."""
+
+    def __init__(self, action_space: spaces.Discrete, seed: Optional[int] = None) -> None:
+        self.action_space = action_space
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        return int(self.rng.integers(self.action_space.n))
+
+
+def play_trial(
+    env: gym.Env,
+    agent: ScriptedAgent,
+    seed: Optional[int] = None,
+    options: Optional[Dict[str, Any]] = None,
+) -> Dict[str, Any]:
+    """Run one trial of ``agent`` in ``env``; the agent only ever sees :func:`public_info`.
+
+    Returns a dict with ``problem_id``, ``execution_returns`` (one per execution episode),
+    ``exploration_length`` and ``trial_return`` (the sum of the step rewards).
+    """
+    agent.reset()
+    obs, info = env.reset(seed=seed, options=options)
+    result: Dict[str, Any] = {"problem_id": info["problem_id"], "trial_return": 0.0}
+    terminated = truncated = False
+    while not (terminated or truncated):
+        obs, reward, terminated, truncated, info = env.step(agent.act(obs, public_info(info)))
+        result["trial_return"] += float(reward)
+        if info.get("episode_end") and info["episode_phase"] == EXPLORATION:
+            result["exploration_length"] = info["episode_length"]
+    result["execution_returns"] = info["execution_returns"]
+    return result
