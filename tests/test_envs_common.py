@@ -1,0 +1,92 @@
+"""What every registered trial env must do: checkers, vectorised use, the oracle beating random."""
+
+from __future__ import annotations
+
+import importlib
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+import dream_envs
+from dream_envs import RandomAgent, play_trial
+
+ENV_IDS = list(dream_envs.ENV_IDS)
+
+
+def _available(env_id: str) -> bool:
+    try:
+        importlib.import_module(dream_envs.ENV_IDS[env_id].split(":")[0])
+        return True
+    except ModuleNotFoundError:
+        return False
+
+
+@pytest.fixture(params=ENV_IDS)
+def env_id(request):
+    if not _available(request.param):
+        pytest.fail(f"{request.param} is registered but its module is missing")
+    return request.param
+
+
+def test_checkers(env_id):
+    env = gym.make(env_id)
+    gym_check_env(env.unwrapped, skip_render_check=True)
+    sb3_check_env(env.unwrapped, warn=True)
+    env.close()
+
+
+def test_render_rgb_array(env_id):
+    env = gym.make(env_id, render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3 and min(frame.shape[:2]) >= 60
+    assert frame.std() > 0  # not a blank image
+    env.close()
+
+
+def test_problem_id_only_in_info(env_id):
+    env = gym.make(env_id, split="all")
+    obs, info = env.reset(seed=0)
+    assert "problem_id" in info and "problem_id" not in obs
+    assert 0 <= info["problem_id"] < env.unwrapped.n_problems
+    assert set(env.unwrapped.problem_ids("train")) | set(env.unwrapped.problem_ids("test")) <= set(
+        env.unwrapped.problem_ids("all")
+    )
+    env.close()
+
+
+def test_oracle_beats_random(env_id):
+    env = gym.make(env_id)
+    oracle, random = dream_envs.make_oracle(env), RandomAgent(env.action_space, seed=0)
+    n = 3 if env_id == "SignNav3D-v0" else 20
+    best = np.mean([play_trial(env, oracle, seed=s)["execution_returns"][0] for s in range(n)])
+    chance = np.mean([play_trial(env, random, seed=s)["execution_returns"][0] for s in range(n)])
+    assert best > chance
+    env.close()
+
+
+@pytest.mark.parametrize("vec_env_cls", [DummyVecEnv, SubprocVecEnv])
+def test_vectorised_auto_reset_draws_new_problems(env_id, vec_env_cls):
+    n_envs = 2 if env_id == "SignNav3D-v0" else 8
+    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls)
+    obs = vec.reset()
+    assert obs["obs"].shape[0] == n_envs
+    rng = np.random.default_rng(0)
+    problems, trials_done = set(), 0
+    for _ in range(60):
+        obs, rewards, dones, infos = vec.step(rng.integers(vec.action_space.n, size=n_envs))
+        assert rewards.shape == (n_envs,)
+        for done, info in zip(dones, infos):
+            problems.add(info["problem_id"])
+            if done:
+                trials_done += 1
+                assert "terminal_observation" in info and "execution_returns" in info
+    vec.close()
+    assert trials_done > 0
+    if len(gym.make(env_id).unwrapped.problem_ids()) > 1:
+        assert len(problems) > 1
