@@ -1,0 +1,259 @@
+"""Meta-test evaluation for any trial env and any agent (DREAM, RL2DQN, a scripted oracle).
+
+A meta-test trial (paper, Section 2): in a problem of the chosen split, the agent explores for one
+episode, then runs ``n_exec_episodes`` execution episodes; it is scored on the execution returns.
+The problem ID never reaches the agent: scripted agents see only :func:`dream_envs.public_info`,
+SB3 models only the observation.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional, Sequence, Union
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+import dream_envs
+from dream_envs import ScriptedAgent, play_trial
+from dream_envs.core import SPLITS, check_choice, check_positive_int
+
+
+class PolicyAgent(ScriptedAgent):
+    """Plays an SB3 model through ``predict(obs, state, episode_start, deterministic)`` (one env).
+
+    The recurrent state is reset at each trial's start (``episode_start=True`` on its first step)
+    and carried across the trial's inner episodes.
+    """
+
+    def __init__(self, model: Any, deterministic: bool = True) -> None:
+        self.model, self.deterministic = model, deterministic
+        self.reset()
+
+    def reset(self) -> None:
+        self.state: Any = None
+        self.episode_start = True
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        action, self.state = self.model.predict(
+            obs, state=self.state, episode_start=np.array([self.episode_start]), deterministic=self.deterministic
+        )
+        self.episode_start = False
+        return int(np.asarray(action).reshape(-1)[0])
+
+
+def as_trial_agent(agent: Any, deterministic: bool = True) -> ScriptedAgent:
+    """A :class:`~dream_envs.ScriptedAgent` for ``agent``: itself if it is one, the model's own
+    ``as_trial_agent(deterministic)`` if it defines one (a model that uses ``info["final_obs"]``),
+    else a :class:`PolicyAgent` around ``predict``."""
+    if isinstance(agent, ScriptedAgent):
+        return agent
+    if hasattr(agent, "as_trial_agent"):
+        return agent.as_trial_agent(deterministic=deterministic)
+    if hasattr(agent, "predict"):
+        return PolicyAgent(agent, deterministic=deterministic)
+    raise TypeError(
+        f"agent must be a dream_envs.ScriptedAgent or a model with predict(), got {type(agent).__name__}"
+    )
+
+
+@dataclass
+class MetaEvalResult:
+    """Execution returns of ``n_trials`` meta-test trials.
+
+    ``returns[k, j]`` is trial k's return in execution episode j.
+    """
+
+    returns: np.ndarray
+    exploration_lengths: np.ndarray
+    problem_ids: np.ndarray
+    seconds: float
+    per_episode_mean: np.ndarray = field(init=False)
+    per_episode_ci: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.per_episode_mean = self.returns.mean(axis=0)
+        self.per_episode_ci = _ci95(self.returns)
+
+    @property
+    def n_trials(self) -> int:
+        return int(self.returns.shape[0])
+
+    @property
+    def mean(self) -> float:
+        """Mean execution return per episode, over all trials and execution episodes."""
+        return float(self.returns.mean())
+
+    @property
+    def ci(self) -> float:
+        """95% confidence half-width of :attr:`mean` (normal approximation over trials)."""
+        return float(_ci95(self.returns.mean(axis=1, keepdims=True))[0])
+
+    @property
+    def mean_exploration_length(self) -> float:
+        return float(self.exploration_lengths.mean())
+
+    def summary(self) -> str:
+        per_ep = ", ".join(f"{m:.3f}±{c:.3f}" for m, c in zip(self.per_episode_mean, self.per_episode_ci))
+        return (
+            f"execution return {self.mean:.3f} ± {self.ci:.3f} over {self.n_trials} trials "
+            f"(per episode: {per_ep}); exploration length {self.mean_exploration_length:.1f}"
+        )
+
+
+def _ci95(values: np.ndarray) -> np.ndarray:
+    n = values.shape[0]
+    if n < 2:
+        return np.zeros(values.shape[1])
+    return 1.96 * values.std(axis=0, ddof=1) / np.sqrt(n)
+
+
+def _make_env(env: Union[str, gym.Env], split: str, n_exec_episodes: int, env_kwargs: Optional[dict]) -> gym.Env:
+    if isinstance(env, str):
+        return gym.make(env, split=split, n_exec_episodes=n_exec_episodes, **(env_kwargs or {}))
+    unwrapped = env.unwrapped
+    if not isinstance(unwrapped, dream_envs.TrialEnv):
+        raise TypeError(f"env must be a trial env (dream_envs.TrialEnv) or its ID, got {type(unwrapped).__name__}")
+    if unwrapped.split != split or unwrapped.n_exec_episodes != n_exec_episodes:
+        raise ValueError(
+            f"env has split={unwrapped.split!r}, n_exec_episodes={unwrapped.n_exec_episodes} but "
+            f"split={split!r}, n_exec_episodes={n_exec_episodes} were asked for: pass an env ID or a matching env"
+        )
+    return env
+
+
+def evaluate_meta(
+    agent: Any,
+    env: Union[str, gym.Env],
+    n_trials: int = 100,
+    split: str = "test",
+    n_exec_episodes: int = 1,
+    deterministic: bool = True,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+    env_kwargs: Optional[Dict[str, Any]] = None,
+) -> MetaEvalResult:
+    """Run ``n_trials`` meta-test trials of ``agent`` on ``split`` and collect execution returns.
+
+    :param agent: a :class:`dream_envs.ScriptedAgent` or a model with ``predict`` (RL2DQN, DREAM).
+    :param env: an env ID (made with ``split``, ``n_exec_episodes`` and ``env_kwargs``) or a trial env
+        already made with that split and number of execution episodes.
+    :param problem_ids: if given, trial k is pinned to ``problem_ids[k % len(problem_ids)]`` (for an
+        exhaustive evaluation); otherwise problems are drawn from the split, reproducibly from ``seed``.
+    """
+    n_trials = check_positive_int("n_trials", n_trials)
+    n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
+    check_choice("split", split, SPLITS)
+    trial_env = _make_env(env, split, n_exec_episodes, env_kwargs)
+    trial_agent = as_trial_agent(agent, deterministic)
+    if problem_ids is not None and len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+
+    start = time.perf_counter()
+    returns, lengths, pids = [], [], []
+    for k in range(n_trials):
+        options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
+        result = play_trial(trial_env, trial_agent, seed=seed + k, options=options)
+        returns.append(result["execution_returns"])
+        lengths.append(result["exploration_length"])
+        pids.append(result["problem_id"])
+    if isinstance(env, str):
+        trial_env.close()
+    return MetaEvalResult(
+        returns=np.asarray(returns, dtype=np.float64),
+        exploration_lengths=np.asarray(lengths, dtype=np.float64),
+        problem_ids=np.asarray(pids, dtype=np.int64),
+        seconds=time.perf_counter() - start,
+    )
+
+
+class MetaEvalCallback(BaseCallback):
+    """Runs :func:`evaluate_meta` every ``eval_freq`` env steps during training and logs it.
+
+    Logger keys: ``eval/execution_return`` (mean over trials and execution episodes),
+    ``eval/execution_return_ci``, ``eval/execution_return_ep{j}`` for j >= 1 when
+    ``n_exec_episodes > 1``, ``eval/exploration_length``. With ``csv_path`` it also appends a row
+    ``env_steps, wall_clock_s, mean, ci, exploration_length`` per evaluation (a learning curve).
+
+    :param eval_freq: evaluate every this many env steps (counted over all envs), and once at the
+        start and the end of training.
+    """
+
+    def __init__(
+        self,
+        eval_env: Union[str, gym.Env],
+        eval_freq: int = 10_000,
+        n_trials: int = 100,
+        split: str = "test",
+        n_exec_episodes: int = 1,
+        deterministic: bool = True,
+        seed: int = 0,
+        env_kwargs: Optional[Dict[str, Any]] = None,
+        csv_path: Optional[str] = None,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        self.eval_freq = check_positive_int("eval_freq", eval_freq)
+        self.n_trials = check_positive_int("n_trials", n_trials)
+        self.split = check_choice("split", split, SPLITS)
+        self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
+        self.eval_env = _make_env(eval_env, split, n_exec_episodes, env_kwargs)
+        self.deterministic, self.seed, self.csv_path = deterministic, seed, csv_path
+        self.results: List[Dict[str, float]] = []
+        self._last_eval_step: Optional[int] = None
+        self._train_start = time.perf_counter()
+
+    def _on_training_start(self) -> None:
+        self._train_start = time.perf_counter()
+        if self.csv_path:
+            os.makedirs(os.path.dirname(os.path.abspath(self.csv_path)), exist_ok=True)
+            if not os.path.exists(self.csv_path):
+                with open(self.csv_path, "w", newline="") as f:
+                    csv.writer(f).writerow(["env_steps", "wall_clock_s", "mean", "ci", "exploration_length"])
+        self._evaluate()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps - (self._last_eval_step or 0) >= self.eval_freq:
+            self._evaluate()
+        return True
+
+    def _on_training_end(self) -> None:
+        if self._last_eval_step != self.num_timesteps:
+            self._evaluate()
+
+    def _evaluate(self) -> None:
+        wall_clock = time.perf_counter() - self._train_start
+        result = evaluate_meta(
+            self.model,
+            self.eval_env,
+            n_trials=self.n_trials,
+            split=self.split,
+            n_exec_episodes=self.n_exec_episodes,
+            deterministic=self.deterministic,
+            seed=self.seed,
+        )
+        self._last_eval_step = self.num_timesteps
+        row = {
+            "env_steps": self.num_timesteps,
+            "wall_clock_s": wall_clock,
+            "mean": result.mean,
+            "ci": result.ci,
+            "exploration_length": result.mean_exploration_length,
+        }
+        self.results.append(row)
+        self.logger.record("eval/execution_return", result.mean)
+        self.logger.record("eval/execution_return_ci", result.ci)
+        self.logger.record("eval/exploration_length", result.mean_exploration_length)
+        if self.n_exec_episodes > 1:
+            for j, m in enumerate(result.per_episode_mean, start=1):
+                self.logger.record(f"eval/execution_return_ep{j}", float(m))
+        self.logger.dump(self.num_timesteps)
+        if self.csv_path:
+            with open(self.csv_path, "a", newline="") as f:
+                csv.writer(f).writerow([row[k] for k in ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")])
+        if self.verbose:
+            print(f"[{self.num_timesteps} steps, {wall_clock:.0f}s] {self.split}: {result.summary()}")
