@@ -135,7 +135,9 @@ class MetaBusEnv(TrialEnv):
         """Where each bus stop of problem ``problem_id`` leads (colored stops first, then gray ones)."""
         valid = isinstance(problem_id, (int, np.integer)) and not isinstance(problem_id, (bool, np.bool_))
         if not (valid and 0 <= problem_id < self.n_problems):
-            raise ValueError(f"problem_id={problem_id!r} is not valid; accepted values: integers 0 .. {self.n_problems - 1}")
+            raise ValueError(
+                f"problem_id={problem_id!r} is not valid; accepted values: integers 0 .. {self.n_problems - 1}"
+            )
         colored = PERMUTATIONS[problem_id % len(PERMUTATIONS)]
         routes = {stop: COLORED_DESTINATIONS[d] for stop, d in zip(COLORED_STOPS, colored)}
         if self.variant == "distracting":

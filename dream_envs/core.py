@@ -37,7 +37,8 @@ zero only at the start of a trial.
 ``info`` holds, at reset and after every step: ``problem_id`` (privileged: never in the
 observation), ``phase`` and ``episode_index`` (0 exploration, 1..N execution) of the episode that
 the returned observation belongs to. On the last step of an inner episode it also holds
-``episode_end=True``, ``episode_return``, ``episode_length``, ``episode_phase`` and ``final_obs``
+``episode_end=True``, ``episode_return``, ``episode_length``, ``episode_phase``,
+``episode_truncated`` (ended by the horizon, not by the MDP or the end-episode action) and ``final_obs``
 (that episode's last inner ``obs``: the step already returns the next episode's first
 observation). On the trial's last step it holds ``execution_returns``, the list of the N
 execution returns.
@@ -178,7 +179,24 @@ class TrialEnv(gym.Env, ABC):
     def _render_frame(self) -> np.ndarray:
         """An HxWx3 uint8 picture of the current state."""
 
+    @property
+    def problem_nvec(self) -> np.ndarray:
+        """Sizes of the dimensions of :meth:`problem_features` (default: the bare ID)."""
+        return np.array([self.n_problems], dtype=np.int64)
+
+    def problem_features(self, problem_id: int) -> np.ndarray:
+        """The problem's structured representation (paper, Appendix B.1: e.g. cooking's fridge triple).
+
+        A problem-ID encoder embeds each dimension separately (Appendix B.3), so held-out problems
+        share parts with training ones. Default: the bare ID. Values lie in ``[0, problem_nvec)``.
+        """
+        return np.array([problem_id], dtype=np.int64)
+
     # ------------------------------------------------------------------ public helpers
+    def problem_feature_table(self) -> np.ndarray:
+        """``[n_problems, len(problem_nvec)]``: :meth:`problem_features` of every problem ID."""
+        return np.stack([self.problem_features(k) for k in range(self.n_problems)]).astype(np.int64)
+
     def problem_ids(self, split: Optional[str] = None) -> np.ndarray:
         """The problem IDs of ``split`` (default: this env's split)."""
         split = self.split if split is None else check_choice("split", split, SPLITS)
@@ -255,6 +273,8 @@ class TrialEnv(gym.Env, ABC):
         if done or self._t >= self.horizon:
             end_info = {
                 "episode_end": True,
+                # ended by the horizon alone (a time limit: the last state is not terminal)
+                "episode_truncated": not done,
                 "episode_return": self._episode_return,
                 "episode_length": self._t,
                 "episode_phase": self.phase,

@@ -98,13 +98,14 @@ def test_trial_structure_rewards_and_info():
     assert "episode_end" not in i2
     # the third step ends exploration: info describes it, obs is execution's first
     assert i3["episode_end"] and i3["episode_phase"] == EXPLORATION and i3["episode_length"] == 3
-    assert i3["final_obs"].tolist() == [2, 0] and i3["episode_return"] == 0.0
+    assert i3["final_obs"].tolist() == [2, 0] and i3["episode_return"] == 0.0 and i3["episode_truncated"]
     assert o3["phase"] == EXECUTION and o3["episode_start"] == 1 and o3["instruction"][0] in (1, 2)
     assert o3["prev_action"] == 1  # carried across the boundary
     assert i3["episode_index"] == 1 and i3["phase"] == EXECUTION
     # execution 1: right action (1) gives +1 and ends; execution 2: wrong action gives -1, trial ends
     (o4, r4, t4, i4), (o5, r5, t5, i5) = steps[4:6]
     assert (r4, t4, i4["episode_return"], i4["episode_index"]) == (1.0, False, 1.0, 2)
+    assert not i4["episode_truncated"]  # ended by the MDP
     assert o4["prev_reward"][0] == 1.0 and o4["episode_start"] == 1
     assert (r5, t5) == (-1.0, True) and i5["execution_returns"] == [1.0, -1.0]
     with pytest.raises(RuntimeError, match="reset"):
@@ -126,6 +127,11 @@ def test_exploration_with_rewards_variant():
     assert obs["instruction"][0] in (1, 2)
     obs, r, term, trunc, info = env.step(0)
     assert r == 1.0 and info["episode_end"] and info["episode_phase"] == EXPLORATION and not term
+
+
+def test_problem_features_default_to_the_id():
+    env = CueEnv()
+    assert env.problem_nvec.tolist() == [2] and env.problem_feature_table().tolist() == [[0], [1]]
 
 
 def test_splits_and_sampling():
