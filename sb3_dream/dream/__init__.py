@@ -1,0 +1,4 @@
+from sb3_dream.dream.dream import DREAM
+from sb3_dream.dream.policies import DreamPolicy
+
+__all__ = ["DREAM", "DreamPolicy"]

@@ -1,0 +1,169 @@
+"""DREAM's two replay buffers (Algorithm 1, lines 1, 8-9 and 13).
+
+* :class:`ExplorationBuffer` (B_exp): whole exploration trajectories tau^exp = (s_0, a_0, ..., s_T)
+  with their problem, in preallocated arrays, one trajectory per slot (the paper's "sequences";
+  capacity 16000). Exploration Q-learning samples whole padded sequences from it, and the
+  decoder reads its trajectories.
+* :class:`ExecutionBuffer` (B_exe): execution transitions (s, i, a, r, s', done) that keep a
+  reference (slot and generation) to their trial's exploration trajectory in B_exp (capacity
+  100K). A transition whose trajectory was overwritten is never sampled.
+
+Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) saves everything.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+
+class TrajectoryBatch(NamedTuple):
+    states: th.Tensor  # [B, T+1, ...] s_0 .. s_T (padded after the trajectory's end)
+    actions: th.Tensor  # [B, T] a_0 .. a_{T-1}
+    prev_actions: th.Tensor  # [B, T+1] the observation's prev_action at each s_t
+    prev_rewards: th.Tensor  # [B, T+1, 1]
+    lengths: th.Tensor  # [B] number of transitions T_b
+    problem_features: th.Tensor  # [B, P]
+
+
+class ExecutionBatch(NamedTuple):
+    states: th.Tensor
+    instructions: th.Tensor
+    actions: th.Tensor  # [B]
+    rewards: th.Tensor  # [B]
+    next_states: th.Tensor
+    dones: th.Tensor  # [B] 1.0 where s' is terminal (not a time limit)
+    slots: np.ndarray  # [B] the exploration-buffer slot of each transition's trial
+
+
+def _state_dtype(space: spaces.Space) -> np.dtype:
+    return np.uint8 if space.dtype == np.uint8 else np.int64 if np.issubdtype(space.dtype, np.integer) else np.float32
+
+
+class ExplorationBuffer:
+    """Ring buffer of exploration trajectories of at most ``max_length`` transitions."""
+
+    def __init__(
+        self, capacity: int, max_length: int, state_space: spaces.Space, n_problem_features: int, device: th.device
+    ) -> None:
+        self.capacity, self.max_length, self.device = capacity, max_length, device
+        shape, dtype = state_space.shape, _state_dtype(state_space)
+        self.states = np.zeros((capacity, max_length + 1, *shape), dtype=dtype)
+        self.actions = np.zeros((capacity, max_length), dtype=np.int64)
+        self.prev_actions = np.zeros((capacity, max_length + 1), dtype=np.int64)
+        self.prev_rewards = np.zeros((capacity, max_length + 1, 1), dtype=np.float32)
+        self.lengths = np.zeros(capacity, dtype=np.int64)
+        self.problem_features = np.zeros((capacity, n_problem_features), dtype=np.int64)
+        self.generation = np.zeros(capacity, dtype=np.int64)  # bumped when a slot is overwritten
+        self.pos, self.full = 0, False
+
+    def __len__(self) -> int:
+        return self.capacity if self.full else self.pos
+
+    def add(
+        self,
+        states: np.ndarray,
+        actions: np.ndarray,
+        prev_actions: np.ndarray,
+        prev_rewards: np.ndarray,
+        length: int,
+        problem_features: np.ndarray,
+    ) -> tuple[int, int]:
+        """Store one trajectory (arrays padded to ``max_length``); return its (slot, generation)."""
+        slot = self.pos
+        self.states[slot] = states
+        self.actions[slot] = actions
+        self.prev_actions[slot] = prev_actions
+        self.prev_rewards[slot, :, 0] = prev_rewards
+        self.lengths[slot] = length
+        self.problem_features[slot] = problem_features
+        self.generation[slot] += 1
+        self.pos = (self.pos + 1) % self.capacity
+        self.full = self.full or self.pos == 0
+        return slot, int(self.generation[slot])
+
+    def get(self, slots: np.ndarray) -> TrajectoryBatch:
+        """The trajectories in ``slots``, cut to the longest of them."""
+        t = int(self.lengths[slots].max())
+        to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
+        return TrajectoryBatch(
+            states=to(self.states[slots, : t + 1]),
+            actions=to(self.actions[slots, :t]),
+            prev_actions=to(self.prev_actions[slots, : t + 1]),
+            prev_rewards=to(self.prev_rewards[slots, : t + 1]),
+            lengths=to(self.lengths[slots]),
+            problem_features=to(self.problem_features[slots]),
+        )
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, TrajectoryBatch]:
+        slots = rng.integers(len(self), size=batch_size)
+        return slots, self.get(slots)
+
+
+class ExecutionBuffer:
+    """Ring buffer of execution transitions, each pointing at its trial's exploration trajectory."""
+
+    def __init__(self, capacity: int, observation_space: spaces.Dict, device: th.device) -> None:
+        self.capacity, self.device = capacity, device
+        state_space = observation_space["obs"]
+        shape, dtype = state_space.shape, _state_dtype(state_space)
+        self.states = np.zeros((capacity, *shape), dtype=dtype)
+        self.next_states = np.zeros((capacity, *shape), dtype=dtype)
+        self.instructions = np.zeros((capacity, *observation_space["instruction"].shape), dtype=np.int64)
+        self.actions = np.zeros(capacity, dtype=np.int64)
+        self.rewards = np.zeros(capacity, dtype=np.float32)
+        self.dones = np.zeros(capacity, dtype=np.float32)
+        self.slots = np.zeros(capacity, dtype=np.int64)
+        self.generations = np.zeros(capacity, dtype=np.int64)
+        self.pos, self.full = 0, False
+
+    def __len__(self) -> int:
+        return self.capacity if self.full else self.pos
+
+    def add(self, transitions: Dict[str, np.ndarray]) -> None:
+        """Add a batch of transitions (arrays with a leading dim, one row per env)."""
+        n = len(transitions["actions"])
+        idx = (self.pos + np.arange(n)) % self.capacity
+        for key, value in transitions.items():
+            getattr(self, key)[idx] = value
+        self.full = self.full or self.pos + n >= self.capacity
+        self.pos = int((self.pos + n) % self.capacity)
+
+    def sample(self, batch_size: int, exploration: ExplorationBuffer, rng: np.random.Generator) -> ExecutionBatch:
+        """Uniform over the transitions whose exploration trajectory is still stored."""
+        idx = rng.integers(len(self), size=batch_size)
+        for _ in range(100):
+            stale = exploration.generation[self.slots[idx]] != self.generations[idx]
+            if not stale.any():
+                break
+            idx[stale] = rng.integers(len(self), size=int(stale.sum()))
+        else:
+            raise RuntimeError("the execution buffer references no stored exploration trajectory: grow buffer_size")
+        to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
+        return ExecutionBatch(
+            states=to(self.states[idx]),
+            instructions=to(self.instructions[idx]),
+            actions=to(self.actions[idx]),
+            rewards=to(self.rewards[idx]),
+            next_states=to(self.next_states[idx]),
+            dones=to(self.dones[idx]),
+            slots=self.slots[idx],
+        )
+
+
+class DreamReplayBuffer:
+    """Both buffers together, so SB3's ``save_replay_buffer``/``load_replay_buffer`` carry them."""
+
+    def __init__(self, exploration: ExplorationBuffer, execution: ExecutionBuffer) -> None:
+        self.exploration, self.execution = exploration, execution
+
+    @property
+    def device(self) -> th.device:
+        return self.exploration.device
+
+    @device.setter
+    def device(self, device: th.device) -> None:
+        self.exploration.device = self.execution.device = device

@@ -1,0 +1,761 @@
+"""DREAM: Decoupled Reward-free ExplorAtion and execution in Meta-reinforcement learning.
+
+Liu, Raghunathan, Liang, Finn: "Explore then Execute: Adapting without Rewards via Factorized
+Meta-Reinforcement Learning" (ICML 2021), Section 4 and Algorithm 1 (Appendix A).
+
+Per training trial (one Gymnasium episode of a :class:`dream_envs.TrialEnv`):
+
+1. the exploration policy Q^exp(s_t, tau_:t) rolls out the reward-free exploration episode; its
+   trajectory tau^exp goes to the exploration buffer (Algorithm 1, lines 7-9);
+2. the trial's z is drawn alternately from the problem encoder, z ~ N(f(T), rho^2 I), or from the
+   decoder, z = g(tau^exp) (line 11); the execution policy Q^exe(s, i, z) rolls out the execution
+   episodes; their transitions go to the execution buffer with a reference to tau^exp (lines 12-13).
+
+Every ``train_freq`` env steps, one update of each part (lines 14-23):
+
+* exploration DDQN on the information-gain reward, recomputed with the current f and g
+  (Equation 5): r_t = ||f(T) - g(tau_:t)||^2 - ||f(T) - g(tau_:t+1)||^2 - c;
+* execution DDQN twice, with z = g(tau^exp) (trains theta, omega) and with z ~ N(f(T), rho^2 I)
+  (trains theta, psi);
+* the information bottleneck on f (Equation 3): lambda * max(||f(T)||^2, K), so only norms above K
+  are pushed down;
+* the decoder regression of every prefix g(tau_:t) toward stop-gradient f(T) (Equation 4).
+
+At meta-test the execution policy always uses z = g(tau^exp): the problem ID is never needed.
+"""
+
+from __future__ import annotations
+
+import io
+import pathlib
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+import torch.nn.functional as F
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.save_util import load_from_pkl
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.utils import safe_mean
+from stable_baselines3.common.vec_env import VecEnv
+
+from dream_envs import EXECUTION, EXPLORATION, ScriptedAgent
+from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
+from sb3_dream.dream.policies import DreamPolicy
+
+SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
+
+REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
+
+
+def linear_epsilon(step: int, initial: float, final: float, decay_steps: int) -> float:
+    """Linear decay from ``initial`` to ``final`` over ``decay_steps`` steps, then constant."""
+    if decay_steps <= 0:
+        return final
+    return initial + (final - initial) * min(1.0, step / decay_steps)
+
+
+@dataclass
+class TrialState:
+    """What DREAM remembers about the current trial of each of ``n`` envs while acting."""
+
+    hidden: Tuple[th.Tensor, th.Tensor]  # exploration LSTM state, each [1, n, hidden]
+    states: np.ndarray  # [n, H+1, ...] exploration states s_0 .. s_T
+    actions: np.ndarray  # [n, H]
+    prev_actions: np.ndarray  # [n, H+1]
+    prev_rewards: np.ndarray  # [n, H+1]
+    length: np.ndarray  # [n] exploration steps taken
+    z: np.ndarray  # [n, z_dim] the trial's z for execution (valid where z_ready)
+    z_ready: np.ndarray  # [n] bool
+
+    def reset(self, idx: np.ndarray) -> None:
+        """Forget the trials of envs ``idx``: a new trial starts there."""
+        self.hidden[0][:, idx] = 0.0
+        self.hidden[1][:, idx] = 0.0
+        self.length[idx] = 0
+        self.z_ready[idx] = False
+        self.prev_actions[idx] = 0
+        self.prev_rewards[idx] = 0.0
+
+    def as_tuple(self) -> Tuple[np.ndarray, ...]:
+        h, c = (t.detach().cpu().numpy() for t in self.hidden)
+        return (h, c, self.states, self.actions, self.prev_actions, self.prev_rewards, self.length, self.z, self.z_ready)
+
+    @classmethod
+    def from_tuple(cls, state: Tuple[np.ndarray, ...], device: th.device) -> "TrialState":
+        h, c, *rest = state
+        hidden = (th.as_tensor(h, device=device).clone(), th.as_tensor(c, device=device).clone())
+        return cls(hidden, *(np.array(a, copy=True) for a in rest))
+
+
+class DREAM(OffPolicyAlgorithm):
+    """DREAM for trial envs (:mod:`dream_envs`), following the paper's Algorithm 1 and Appendix B.
+
+    Defaults are the paper's (Table 1 and Appendix B.4); where the paper is silent, the authors'
+    implementation's (learning starts, bottleneck threshold K).
+
+    :param policy: "DreamPolicy" (default), or the env when it is the only argument:
+        ``DREAM("MetaBus-v0")``.
+    :param env: a trial env (or its ID, or a VecEnv of them).
+    :param learning_rate: Adam learning rate of every network.
+    :param buffer_size: exploration trajectories kept (the paper's 16000 sequences).
+    :param execution_buffer_size: execution transitions kept (the paper's 100K experiences).
+    :param batch_size: trajectories per exploration update and transitions per execution update.
+    :param gamma: discount factor of both policies.
+    :param train_freq: env steps (summed over envs) per update of each part (the paper's 4).
+    :param target_update_interval: updates between target-network syncs (the paper's 5000).
+    :param exploration_learning_starts: trials collected before the exploration policy learns.
+    :param execution_learning_starts: trials collected before the execution side learns.
+    :param exploration_initial_eps: epsilon of both policies at the start.
+    :param exploration_final_eps: epsilon of both policies after the decay.
+    :param eps_decay_steps: steps of *each* policy over which its epsilon decays (250K each).
+    :param reward_penalty: c in Equation 5, subtracted from every exploration reward.
+    :param encoder_variance: rho^2 of F(z | T) = N(f(T), rho^2 I).
+    :param bottleneck: False gives the paper's "DREAM (no bottleneck)" ablation: no noise on f
+        and no penalty on its norm.
+    :param bottleneck_threshold: K: only ||f(T)||^2 above K is penalised.
+    :param bottleneck_weight: lambda, the weight of the bottleneck penalty.
+    :param max_grad_norm: gradient-norm clip of each optimizer.
+    :param z_dim: dimension of z.
+    """
+
+    policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
+    policy: DreamPolicy
+    replay_buffer: DreamReplayBuffer  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        policy: Union[str, Type[DreamPolicy], GymEnv] = "DreamPolicy",
+        env: Union[GymEnv, str, None] = None,
+        learning_rate: Union[float, Schedule] = 1e-4,
+        buffer_size: int = 16_000,
+        execution_buffer_size: int = 100_000,
+        batch_size: int = 32,
+        gamma: float = 0.99,
+        train_freq: int = 4,
+        target_update_interval: int = 5000,
+        exploration_learning_starts: int = 8000,
+        execution_learning_starts: int = 500,
+        exploration_initial_eps: float = 1.0,
+        exploration_final_eps: float = 0.01,
+        eps_decay_steps: int = 250_000,
+        reward_penalty: float = 0.01,
+        encoder_variance: float = 0.1,
+        bottleneck: bool = True,
+        bottleneck_threshold: float = 10.0,
+        bottleneck_weight: float = 1.0,
+        max_grad_norm: float = 10.0,
+        z_dim: int = 64,
+        stats_window_size: int = 100,
+        tensorboard_log: Optional[str] = None,
+        policy_kwargs: Optional[Dict[str, Any]] = None,
+        verbose: int = 0,
+        seed: Optional[int] = None,
+        device: Union[th.device, str] = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        if env is None and not (isinstance(policy, type) or policy in self.policy_aliases):
+            policy, env = "DreamPolicy", policy  # DREAM("MetaBus-v0"): the env is the only argument
+        if env is None:
+            raise ValueError("env is required: a trial env, its ID (e.g. 'MetaBus-v0') or a VecEnv of trial envs")
+        for name, value, minimum in [
+            ("buffer_size", buffer_size, 1),
+            ("execution_buffer_size", execution_buffer_size, 1),
+            ("batch_size", batch_size, 1),
+            ("train_freq", train_freq, 1),
+            ("target_update_interval", target_update_interval, 1),
+            ("exploration_learning_starts", exploration_learning_starts, 0),
+            ("execution_learning_starts", execution_learning_starts, 0),
+            ("eps_decay_steps", eps_decay_steps, 0),
+            ("z_dim", z_dim, 1),
+        ]:
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+        if encoder_variance < 0 or bottleneck_threshold < 0 or bottleneck_weight < 0:
+            raise ValueError("encoder_variance, bottleneck_threshold and bottleneck_weight must be >= 0")
+
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=0,
+            batch_size=batch_size,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=1,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            support_multi_env=True,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Discrete,),
+        )
+        self._train_freq_steps = train_freq
+        self.execution_buffer_size = execution_buffer_size
+        self.target_update_interval = target_update_interval
+        self.exploration_learning_starts = exploration_learning_starts
+        self.execution_learning_starts = execution_learning_starts
+        self.exploration_initial_eps = exploration_initial_eps
+        self.exploration_final_eps = exploration_final_eps
+        self.eps_decay_steps = eps_decay_steps
+        self.reward_penalty = reward_penalty
+        self.encoder_variance = encoder_variance
+        self.bottleneck = bottleneck
+        self.bottleneck_threshold = bottleneck_threshold
+        self.bottleneck_weight = bottleneck_weight
+        self.max_grad_norm = max_grad_norm
+        self.z_dim = z_dim
+
+        self._check_trial_env(self.observation_space)
+        assert self.env is not None
+        # What the networks need to know about the problem family, kept with the model so that
+        # loading needs no env: the structured problem representation and the exploration horizon.
+        self.problem_table = np.asarray(self.env.env_method("problem_feature_table", indices=[0])[0])
+        self.problem_nvec = np.asarray(self.env.get_attr("problem_nvec", indices=[0])[0])
+        self.exploration_horizon = int(self.env.get_attr("horizon", indices=[0])[0])
+
+        # Counters (saved with the model).
+        self._n_trials = 0  # exploration trajectories collected
+        self._n_exploration_steps = 0
+        self._n_execution_steps = 0
+        self._steps_since_update = 0
+        self._z_from_encoder: Optional[np.ndarray] = None  # per env: this trial's z source
+        if _init_setup_model:
+            self._setup_model()
+
+    # ------------------------------------------------------------------ set-up
+    @staticmethod
+    def _check_trial_env(observation_space: spaces.Space) -> None:
+        if not isinstance(observation_space, spaces.Dict):
+            raise TypeError(
+                f"DREAM needs a trial env with a Dict observation (keys {', '.join(REQUIRED_KEYS)}), "
+                f"got {type(observation_space).__name__}"
+            )
+        missing = [k for k in REQUIRED_KEYS if k not in observation_space.spaces]
+        if missing:
+            raise ValueError(f"the observation space lacks the trial keys {missing} (see dream_envs.TrialEnv)")
+
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        self._rng = np.random.default_rng(self.seed)
+        self.policy_kwargs.update(problem_nvec=self.problem_nvec, z_dim=self.z_dim)
+        self.policy = self.policy_class(self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs)
+        self.policy = self.policy.to(self.device)
+        exploration = ExplorationBuffer(
+            self.buffer_size, self.exploration_horizon, self.observation_space["obs"], len(self.problem_nvec), self.device
+        )
+        execution = ExecutionBuffer(self.execution_buffer_size, self.observation_space, self.device)
+        self.replay_buffer = DreamReplayBuffer(exploration, execution)
+        self.train_freq = TrainFreq(1, "step")  # type: ignore[assignment]  # we count env steps ourselves
+        self._trial_state: Optional[TrialState] = None
+
+    def _excluded_save_params(self) -> List[str]:
+        return [*super()._excluded_save_params(), "_trial_state"]
+
+    def _get_torch_save_params(self) -> Tuple[List[str], List[str]]:
+        return ["policy", "policy.optimizer", "policy.exploration_optimizer"], []
+
+    def load_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True) -> None:
+        buffer = load_from_pkl(path, self.verbose)
+        if not isinstance(buffer, DreamReplayBuffer):
+            raise TypeError(f"{path} does not hold a DREAM replay buffer (got {type(buffer).__name__})")
+        buffer.device = self.device
+        self.replay_buffer = buffer
+
+    def new_trial_state(self, n_envs: int) -> TrialState:
+        h = self.exploration_horizon
+        obs_space = self.observation_space["obs"]
+        hidden_size = self.policy.exploration_q.hidden_size
+        zeros = lambda: th.zeros(1, n_envs, hidden_size, device=self.device)  # noqa: E731
+        return TrialState(
+            hidden=(zeros(), zeros()),
+            states=np.zeros((n_envs, h + 1, *obs_space.shape), dtype=self.replay_buffer.exploration.states.dtype),
+            actions=np.zeros((n_envs, h), dtype=np.int64),
+            prev_actions=np.zeros((n_envs, h + 1), dtype=np.int64),
+            prev_rewards=np.zeros((n_envs, h + 1), dtype=np.float32),
+            length=np.zeros(n_envs, dtype=np.int64),
+            z=np.zeros((n_envs, self.z_dim), dtype=np.float32),
+            z_ready=np.zeros(n_envs, dtype=bool),
+        )
+
+    # ------------------------------------------------------------------ epsilons
+    @property
+    def exploration_epsilon(self) -> float:
+        """Epsilon of the exploration policy (decays with exploration-episode steps)."""
+        return linear_epsilon(
+            self._n_exploration_steps, self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
+        )
+
+    @property
+    def execution_epsilon(self) -> float:
+        """Epsilon of the execution policy (decays with execution-episode steps)."""
+        return linear_epsilon(
+            self._n_execution_steps, self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
+        )
+
+    # ------------------------------------------------------------------ acting
+    def _obs_tensor(self, x: np.ndarray) -> th.Tensor:
+        return th.as_tensor(np.asarray(x), device=self.device)
+
+    @th.no_grad()
+    def _decode(self, state: TrialState, idx: np.ndarray, n_transitions: np.ndarray) -> np.ndarray:
+        """g(tau_:n) for envs ``idx`` from their stored exploration trajectories (one fused pass)."""
+        t = int(max(1, n_transitions.max()))
+        g = self.policy.decoder(
+            self._obs_tensor(state.states[idx, : t + 1]), self._obs_tensor(state.actions[idx, :t])
+        )  # [k, t+1, z]
+        rows = th.arange(len(idx), device=self.device)
+        return g[rows, th.as_tensor(n_transitions, device=self.device)].cpu().numpy()
+
+    @th.no_grad()
+    def _encode(self, problem_ids: np.ndarray, noisy: bool) -> np.ndarray:
+        """z ~ N(f(T), rho^2 I) (or f(T) without the bottleneck's noise)."""
+        f = self.policy.encoder(self._obs_tensor(self.problem_table[problem_ids]))
+        if noisy and self.bottleneck and self.encoder_variance > 0:
+            f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
+        return f.cpu().numpy()
+
+    @th.no_grad()
+    def _act(
+        self, obs: Dict[str, np.ndarray], state: TrialState, exploration_eps: float, execution_eps: float
+    ) -> np.ndarray:
+        """One batched forward per policy for ``n`` envs; records the exploration steps in ``state``."""
+        n = len(obs["phase"])
+        phase = np.asarray(obs["phase"]).reshape(n)
+        actions = np.zeros(n, dtype=np.int64)
+        n_actions = int(self.action_space.n)
+
+        explore = np.flatnonzero(phase == EXPLORATION)
+        if len(explore):
+            t = state.length[explore]
+            state.states[explore, t] = obs["obs"][explore]
+            state.prev_actions[explore, t] = np.asarray(obs["prev_action"]).reshape(n)[explore]
+            state.prev_rewards[explore, t] = np.asarray(obs["prev_reward"]).reshape(n)[explore]
+            hidden = (state.hidden[0][:, explore], state.hidden[1][:, explore])
+            q, (h, c) = self.policy.exploration_q(
+                self._obs_tensor(obs["obs"][explore])[:, None],
+                self._obs_tensor(state.prev_actions[explore, t])[:, None],
+                self._obs_tensor(state.prev_rewards[explore, t])[:, None, None],
+                hidden,
+            )
+            state.hidden[0][:, explore], state.hidden[1][:, explore] = h, c
+            chosen = q[:, 0].argmax(dim=-1).cpu().numpy()
+            chosen = self._epsilon_greedy(chosen, exploration_eps, n_actions)
+            actions[explore] = chosen
+            state.actions[explore, np.minimum(t, self.exploration_horizon - 1)] = chosen
+            state.length[explore] = np.minimum(t + 1, self.exploration_horizon)
+
+        execute = np.flatnonzero(phase == EXECUTION)
+        if len(execute):
+            missing = execute[~state.z_ready[execute]]
+            if len(missing):
+                # The last exploration state is unknown here (only info["final_obs"] holds it):
+                # use g of the trajectory without its last transition.
+                state.z[missing] = self._decode(state, missing, np.maximum(state.length[missing] - 1, 0))
+                state.z_ready[missing] = True
+            q = self.policy.execution_q(
+                self._obs_tensor(obs["obs"][execute]),
+                self._obs_tensor(obs["instruction"][execute]),
+                self._obs_tensor(state.z[execute]),
+            )
+            chosen = q.argmax(dim=-1).cpu().numpy()
+            actions[execute] = self._epsilon_greedy(chosen, execution_eps, n_actions)
+        return actions
+
+    def _epsilon_greedy(self, greedy: np.ndarray, eps: float, n_actions: int) -> np.ndarray:
+        if eps <= 0:
+            return greedy
+        explore = self._rng.random(len(greedy)) < eps
+        return np.where(explore, self._rng.integers(n_actions, size=len(greedy)), greedy)
+
+    def end_exploration(
+        self, state: TrialState, idx: np.ndarray, final_obs: np.ndarray, problem_ids: Optional[np.ndarray] = None
+    ) -> None:
+        """Close the exploration episodes of envs ``idx`` with their last states ``final_obs`` and set z.
+
+        With ``problem_ids`` (training) the trajectories are stored and z alternates between the
+        encoder and the decoder per trial; without (meta-test) z = g(tau^exp).
+        """
+        state.states[idx, state.length[idx]] = final_obs
+        use_encoder = np.zeros(len(idx), dtype=bool)
+        if problem_ids is not None:
+            assert self._z_from_encoder is not None
+            use_encoder = self._z_from_encoder[idx]
+            for k, e in enumerate(idx):
+                slot, generation = self.replay_buffer.exploration.add(
+                    state.states[e],
+                    state.actions[e],
+                    state.prev_actions[e],
+                    state.prev_rewards[e],
+                    int(state.length[e]),
+                    self.problem_table[problem_ids[k]],
+                )
+                self._slots[e], self._generations[e] = slot, generation
+            self._n_trials += len(idx)
+            self._exploration_lengths.extend(state.length[idx].tolist())
+        z = self._decode(state, idx, state.length[idx])
+        if use_encoder.any():
+            z[use_encoder] = self._encode(problem_ids[use_encoder], noisy=True)
+        state.z[idx], state.z_ready[idx] = z, True
+
+    def predict(
+        self,
+        observation: Dict[str, np.ndarray],
+        state: Optional[Tuple[np.ndarray, ...]] = None,
+        episode_start: Optional[np.ndarray] = None,
+        deterministic: bool = False,
+    ) -> Tuple[np.ndarray, Tuple[np.ndarray, ...]]:
+        """Act at meta-test, following the sb3-contrib recurrent convention.
+
+        ``state`` carries the trial: the exploration LSTM state, the exploration trajectory and,
+        once exploration is over, z = g(tau^exp); it is reset where ``episode_start`` (a new
+        trial) is set. ``deterministic=False`` acts epsilon-greedily with the current epsilons.
+        ``predict`` sees observations only, so the exploration episode's last state (in
+        ``info["final_obs"]``) is not available to the decoder here; :meth:`as_trial_agent`
+        (used by :func:`sb3_dream.evaluation.evaluate_meta`) passes it.
+        """
+        self.policy.set_training_mode(False)
+        obs, vectorized = self._batch_observation(observation)
+        n = len(obs["phase"])
+        trial = self.new_trial_state(n) if state is None else TrialState.from_tuple(state, self.device)
+        starts = np.ones(n, bool) if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(n)
+        if state is None:
+            starts[:] = True
+        trial.reset(np.flatnonzero(starts))
+        eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
+        actions = self._act(obs, trial, *eps)
+        return (actions if vectorized else actions[0:1].reshape(())), trial.as_tuple()
+
+    def _batch_observation(self, observation: Dict[str, Any]) -> Tuple[Dict[str, np.ndarray], bool]:
+        if not isinstance(observation, dict) or any(k not in observation for k in REQUIRED_KEYS):
+            raise ValueError(f"observation must be a dict with the trial keys {REQUIRED_KEYS}")
+        obs_shape = self.observation_space["obs"].shape
+        vectorized = np.asarray(observation["obs"]).shape != obs_shape
+        if vectorized:
+            return {k: np.asarray(v) for k, v in observation.items()}, True
+        return {k: np.asarray(v)[None] for k, v in observation.items()}, False
+
+    def as_trial_agent(self, deterministic: bool = True) -> ScriptedAgent:
+        """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
+        return DreamTrialAgent(self, deterministic)
+
+    # ------------------------------------------------------------------ collecting
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> Tuple[int, BaseCallback]:
+        total_timesteps, callback = super()._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        assert self.env is not None
+        n = self.env.num_envs
+        self._trial_state = self.new_trial_state(n)
+        if self._z_from_encoder is None or len(self._z_from_encoder) != n:
+            self._z_from_encoder = np.arange(n) % 2 == 0
+        self._slots = np.zeros(n, dtype=np.int64)
+        self._generations = np.zeros(n, dtype=np.int64)
+        self._exploration_lengths: deque = deque(maxlen=self._stats_window_size)
+        self._returns_by_source: Dict[str, deque] = {
+            "f": deque(maxlen=self._stats_window_size),
+            "g": deque(maxlen=self._stats_window_size),
+        }
+        return total_timesteps, callback
+
+    def collect_rollouts(
+        self,
+        env: VecEnv,
+        callback: BaseCallback,
+        train_freq: TrainFreq,
+        replay_buffer: ReplayBuffer,
+        action_noise: Optional[ActionNoise] = None,
+        learning_starts: int = 0,
+        log_interval: Optional[int] = None,
+    ) -> RolloutReturn:
+        """Step all envs until ``train_freq`` env steps have passed since the last update."""
+        assert self._trial_state is not None and self._z_from_encoder is not None
+        self.policy.set_training_mode(False)
+        state, n = self._trial_state, env.num_envs
+        callback.on_rollout_start()
+        n_steps, n_trials = 0, 0
+        while self._steps_since_update < self.train_freq_steps:
+            obs = self._last_obs
+            phase = np.asarray(obs["phase"]).reshape(n)
+            actions = self._act(obs, state, self.exploration_epsilon, self.execution_epsilon)
+            new_obs, rewards, dones, infos = env.step(actions)
+
+            self.num_timesteps += n
+            n_steps += 1
+            self._steps_since_update += n
+            self._n_exploration_steps += int((phase == EXPLORATION).sum())
+            self._n_execution_steps += int((phase == EXECUTION).sum())
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return RolloutReturn(n_steps * n, n_trials, continue_training=False)
+            self._update_info_buffer(infos, dones)
+            self._store_step(obs, actions, rewards, new_obs, dones, infos, phase)
+            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+            self._last_obs = new_obs
+
+            for e in np.flatnonzero(dones):
+                n_trials += 1
+                self._episode_num += 1
+                state.reset(np.array([e]))
+                self._z_from_encoder[e] = not self._z_from_encoder[e]  # alternate z sources across trials
+                if log_interval is not None and self._episode_num % log_interval == 0:
+                    self.dump_logs()
+        callback.on_rollout_end()
+        return RolloutReturn(n_steps * n, n_trials, continue_training=True)
+
+    @property
+    def train_freq_steps(self) -> int:
+        return int(self._train_freq_steps)
+
+    def _store_step(
+        self,
+        obs: Dict[str, np.ndarray],
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        new_obs: Dict[str, np.ndarray],
+        dones: np.ndarray,
+        infos: List[Dict[str, Any]],
+        phase: np.ndarray,
+    ) -> None:
+        state = self._trial_state
+        assert state is not None
+        ended = np.array([bool(info.get("episode_end")) for info in infos])
+        # exploration episodes that just ended: store tau^exp, set the trial's z
+        explored = np.flatnonzero((phase == EXPLORATION) & ended)
+        if len(explored):
+            final = np.stack([infos[e]["final_obs"] for e in explored])
+            problem_ids = np.array([infos[e]["problem_id"] for e in explored])
+            self.end_exploration(state, explored, final, problem_ids)
+        # execution transitions, each pointing at its trial's exploration trajectory
+        executed = np.flatnonzero(phase == EXECUTION)
+        if len(executed):
+            next_states = np.array(new_obs["obs"][executed], copy=True)
+            for k, e in enumerate(executed):
+                if ended[e]:
+                    next_states[k] = infos[e]["final_obs"]
+                    source = "f" if self._z_from_encoder[e] else "g"
+                    self._returns_by_source[source].append(infos[e]["episode_return"])
+            terminal = np.array([ended[e] and not infos[e].get("episode_truncated", False) for e in executed])
+            self.replay_buffer.execution.add(
+                {
+                    "states": obs["obs"][executed],
+                    "instructions": obs["instruction"][executed],
+                    "actions": actions[executed],
+                    "rewards": rewards[executed],
+                    "next_states": next_states,
+                    "dones": terminal.astype(np.float32),
+                    "slots": self._slots[executed],
+                    "generations": self._generations[executed],
+                }
+            )
+
+    def learn(
+        self: SelfDREAM,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 100,
+        tb_log_name: str = "DREAM",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfDREAM:
+        """Train for ``total_timesteps`` env steps (``log_interval`` counts trials)."""
+        total_timesteps, callback = self._setup_learn(
+            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
+        )
+        callback.on_training_start(locals(), globals())
+        assert self.env is not None
+        while self.num_timesteps < total_timesteps:
+            rollout = self.collect_rollouts(
+                self.env, callback, self.train_freq, self.replay_buffer, log_interval=log_interval  # type: ignore
+            )
+            if not rollout.continue_training:
+                break
+            n_updates = self._steps_since_update // self.train_freq_steps
+            self._steps_since_update -= n_updates * self.train_freq_steps
+            self.train(gradient_steps=n_updates, batch_size=self.batch_size)
+        callback.on_training_end()
+        return self
+
+    # ------------------------------------------------------------------ training
+    def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        exploration_ready = self._n_trials >= max(1, self.exploration_learning_starts)
+        execution_ready = self._n_trials >= max(1, self.execution_learning_starts) and len(self.replay_buffer.execution) > 0
+        if not (exploration_ready or execution_ready) or gradient_steps <= 0:
+            return
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.policy.optimizer, self.policy.exploration_optimizer])
+        stats: Dict[str, List[float]] = {}
+        for _ in range(gradient_steps):
+            for key, value in self._update(batch_size, exploration_ready, execution_ready).items():
+                stats.setdefault(key, []).append(value)
+            self._n_updates += 1
+            if self._n_updates % self.target_update_interval == 0:
+                self.policy.sync_targets()
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for key, values in stats.items():
+            self.logger.record(f"train/{key}", float(np.mean(values)))
+
+    def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> Dict[str, float]:
+        """One gradient step of each part that is ready (Algorithm 1, lines 14-21)."""
+        policy, buffers, stats = self.policy, self.replay_buffer, {}
+        exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng) if execution_ready else None
+        exp_slots = self._rng.integers(len(buffers.exploration), size=batch_size) if exploration_ready else None
+        # One fused decoder pass over the trajectories of both batches.
+        slots = np.concatenate([s for s in (None if exe is None else exe.slots, exp_slots) if s is not None])
+        traj = buffers.exploration.get(slots)
+        g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix
+        f_all = policy.encoder(traj.problem_features)  # [N, z]
+        n_exe = 0 if exe is None else len(exe.slots)
+
+        if exe is not None:
+            stats.update(self._execution_losses(exe, traj, g_all, f_all, n_exe))
+        if exp_slots is not None:
+            stats.update(self._exploration_update(traj, g_all[n_exe:].detach(), f_all[n_exe:].detach(), n_exe))
+        return stats
+
+    def _execution_losses(self, exe, traj: TrajectoryBatch, g_all: th.Tensor, f_all: th.Tensor, n_exe: int) -> Dict[str, float]:
+        """Execution DDQN with z from g and from F, the bottleneck and the decoder loss, one step."""
+        policy = self.policy
+        rows = th.arange(n_exe, device=self.device)
+        lengths = traj.lengths[:n_exe]
+        z_g = g_all[rows, lengths]  # g(tau^exp) of each transition's trial
+        f = f_all[:n_exe]
+        z_f = f
+        if self.bottleneck and self.encoder_variance > 0:
+            z_f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
+
+        # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
+        z = th.cat([z_g, z_f])
+        states, next_states = exe.states.repeat(2, *[1] * (exe.states.dim() - 1)), exe.next_states.repeat(
+            2, *[1] * (exe.next_states.dim() - 1)
+        )
+        instructions = exe.instructions.repeat(2, 1)
+        actions, rewards, dones = exe.actions.repeat(2), exe.rewards.repeat(2), exe.dones.repeat(2)
+        q = policy.execution_q(states, instructions, z).gather(1, actions[:, None]).squeeze(1)
+        with th.no_grad():
+            next_online = policy.execution_q(next_states, instructions, z)
+            sub = TrajectoryBatch(*(x[:n_exe] for x in traj))
+            z_g_target = policy.decoder_target(sub.states, sub.actions)[rows, lengths]
+            z_f_target = policy.encoder_target(sub.problem_features)
+            next_target = policy.execution_q_target(next_states, instructions, th.cat([z_g_target, z_f_target]))
+            best = next_online.argmax(dim=1, keepdim=True)
+            target = rewards + self.gamma * (1.0 - dones) * next_target.gather(1, best).squeeze(1)
+        td = F.mse_loss(q, target, reduction="none")
+        loss_traj, loss_prob = td[:n_exe].mean(), td[n_exe:].mean()
+
+        # Information bottleneck (Equation 3) on every f in the batch, K-thresholded.
+        f_norm = f_all.pow(2).sum(dim=1)
+        bottleneck = th.clamp(f_norm, min=self.bottleneck_threshold).mean() if self.bottleneck else f_norm.new_zeros(())
+        # Decoder regression (Equation 4) toward stop-gradient f over every valid prefix t = 0..T.
+        n_prefix = g_all.shape[1]
+        valid = (th.arange(n_prefix, device=self.device)[None] <= traj.lengths[:, None]).float()
+        sq = (g_all - f_all.detach()[:, None]).pow(2).sum(dim=-1)
+        decoder_loss = (sq * valid).sum() / valid.sum()
+
+        loss = loss_traj + loss_prob + self.bottleneck_weight * bottleneck + decoder_loss
+        policy.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        params = [p for group in policy.optimizer.param_groups for p in group["params"]]
+        th.nn.utils.clip_grad_norm_(params, self.max_grad_norm)
+        policy.optimizer.step()
+        return {
+            "execution_loss_traj": loss_traj.item(),
+            "execution_loss_prob": loss_prob.item(),
+            "execution_q_mean": q.mean().item(),
+            "decoder_loss": decoder_loss.item(),
+            "f_norm_sq": f_norm.mean().item(),
+            "bottleneck_loss": float(bottleneck.item()),
+        }
+
+    def exploration_rewards(self, g: th.Tensor, f: th.Tensor, lengths: th.Tensor) -> th.Tensor:
+        """Equation 5: r_t = ||f - g(tau_:t)||^2 - ||f - g(tau_:t+1)||^2 - c, for t < T (else 0).
+
+        ``g`` [B, T+1, z] holds every prefix (prefix t has t transitions), ``f`` [B, z].
+        Returns [B, T].
+        """
+        d = (f[:, None] - g).pow(2).sum(dim=-1)  # [B, T+1]
+        r = d[:, :-1] - d[:, 1:] - self.reward_penalty
+        valid = th.arange(r.shape[1], device=r.device)[None] < lengths[:, None]
+        return r * valid
+
+    def _exploration_update(self, traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor, offset: int) -> Dict[str, float]:
+        """Exploration DDQN over whole trajectories (fused LSTM unroll) on relabelled rewards."""
+        policy = self.policy
+        states = traj.states[offset:]
+        actions, prev_actions = traj.actions[offset:], traj.prev_actions[offset:]
+        prev_rewards, lengths = traj.prev_rewards[offset:], traj.lengths[offset:]
+        t_max = actions.shape[1]
+        rewards = self.exploration_rewards(g, f, lengths)  # [B, T]
+        q_all, _ = policy.exploration_q(states, prev_actions, prev_rewards)  # [B, T+1, A]
+        q = q_all[:, :t_max].gather(2, actions[..., None]).squeeze(2)
+        with th.no_grad():
+            q_target_all, _ = policy.exploration_q_target(states, prev_actions, prev_rewards)
+            best = q_all[:, 1:].argmax(dim=2, keepdim=True)
+            next_q = q_target_all[:, 1:].gather(2, best).squeeze(2)  # [B, T]
+            steps = th.arange(t_max, device=self.device)[None]
+            last = steps == (lengths[:, None] - 1)  # the exploration episode ends after its last step
+            target = rewards + self.gamma * (~last).float() * next_q
+            valid = (steps < lengths[:, None]).float()
+        loss = ((q - target).pow(2) * valid).sum() / valid.sum()
+        policy.exploration_optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        th.nn.utils.clip_grad_norm_(policy.exploration_q.parameters(), self.max_grad_norm)
+        policy.exploration_optimizer.step()
+        return {
+            "exploration_loss": loss.item(),
+            "exploration_q_mean": ((q * valid).sum() / valid.sum()).item(),
+            "exploration_reward": ((rewards * valid).sum() / valid.sum()).item(),
+        }
+
+    # ------------------------------------------------------------------ logging
+    def dump_logs(self) -> None:
+        """SB3's rollout/time keys plus DREAM's: both epsilons, exploration length, and the
+        execution return of the trials whose z came from the encoder f and from the decoder g."""
+        self.logger.record("rollout/exploration_epsilon", self.exploration_epsilon)
+        self.logger.record("rollout/execution_epsilon", self.execution_epsilon)
+        if self._exploration_lengths:
+            self.logger.record("rollout/exploration_length", safe_mean(list(self._exploration_lengths)))
+        for source, returns in self._returns_by_source.items():
+            if returns:
+                self.logger.record(f"rollout/execution_return_z_{source}", safe_mean(list(returns)))
+        super().dump_logs()
+
+
+class DreamTrialAgent(ScriptedAgent):
+    """DREAM at meta-test on one trial env, given ``info["final_obs"]`` at the exploration's end."""
+
+    def __init__(self, model: DREAM, deterministic: bool = True) -> None:
+        self.model, self.deterministic = model, deterministic
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = self.model.new_trial_state(1)
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        model = self.model
+        model.policy.set_training_mode(False)
+        batch, _ = model._batch_observation(obs)
+        if info.get("episode_end") and info.get("episode_phase") == EXPLORATION:
+            model.end_exploration(self.state, np.array([0]), np.asarray(info["final_obs"])[None])
+        eps = (0.0, 0.0) if self.deterministic else (model.exploration_epsilon, model.execution_epsilon)
+        return int(model._act(batch, self.state, *eps)[0])

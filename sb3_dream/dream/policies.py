@@ -1,0 +1,183 @@
+"""DREAM's four networks (paper, Section 4.3 and Appendix B.3).
+
+* :class:`ProblemEncoder` f_psi: problem ID -> z (the mean of F(z | T) = N(f(T), rho^2 I)).
+* :class:`TrajectoryDecoder` g_omega: exploration trajectory tau^exp -> z, one fused LSTM pass
+  giving g(tau_:t) for every prefix t = 0 .. T.
+* :class:`ExecutionQNetwork` Q^exe(s, i, z): feed-forward dueling Q-network.
+* :class:`ExplorationQNetwork` Q^exp(s_t, tau_:t): recurrent dueling Q-network over its own history.
+
+:class:`DreamPolicy` holds them and their target copies.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, Dict, Optional, Tuple, Type
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import Schedule
+from torch import nn
+
+from sb3_dream.common.torch_layers import DuelingHead, MultiDiscreteEmbedder, make_embedder
+
+LSTMState = Tuple[th.Tensor, th.Tensor]
+
+
+class ProblemEncoder(nn.Module):
+    """f_psi(T): embeds each dimension of the problem's structured representation (Appendix B.3)."""
+
+    def __init__(self, problem_nvec: np.ndarray, z_dim: int = 64) -> None:
+        super().__init__()
+        # No activation on the output: z lives in all of R^d (the bottleneck bounds its norm).
+        self.embed = MultiDiscreteEmbedder(problem_nvec, out_dim=z_dim, final_activation=False)
+
+    def forward(self, problem_features: th.Tensor) -> th.Tensor:
+        return self.embed(problem_features)
+
+
+class TrajectoryDecoder(nn.Module):
+    """g_omega(tau^exp) for every prefix of tau^exp = (s_0, a_0, s_1, ..., s_T).
+
+    Each transition (s_t, a_t, s_{t+1}) is embedded as [e(s_t); e(a_t); e(s_{t+1})] -> 128 -> 64
+    (ReLU); an LSTM of 128 runs over the transitions; a zero "empty prefix" output is prepended so
+    that one pass yields g(tau_:0) ... g(tau_:T); an MLP 128 -> z_dim maps each to z.
+    """
+
+    def __init__(
+        self, observation_space: spaces.Space, n_actions: int, z_dim: int = 64, hidden_size: int = 128
+    ) -> None:
+        super().__init__()
+        self.state_embed = make_embedder(observation_space)
+        self.action_embed = nn.Embedding(n_actions, 32)
+        d = self.state_embed.out_dim
+        self.transition = nn.Sequential(nn.Linear(2 * d + 32, 128), nn.ReLU(), nn.Linear(128, 64), nn.ReLU())
+        self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
+        self.head = nn.Sequential(nn.Linear(hidden_size, 128), nn.ReLU(), nn.Linear(128, z_dim))
+
+    def forward(self, states: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """``states`` [B, T+1, ...] (s_0 .. s_T, padded), ``actions`` [B, T] -> g for prefixes [B, T+1, z].
+
+        Prefix t's output only depends on the first t transitions, so padding after a trajectory's
+        end never changes its valid prefixes.
+        """
+        e = self.state_embed(states)  # embed each state once, shared by its two transitions
+        x = self.transition(th.cat([e[:, :-1], self.action_embed(actions), e[:, 1:]], dim=-1))
+        h, _ = self.lstm(x)
+        h = th.cat([h.new_zeros(h.shape[0], 1, h.shape[2]), h], dim=1)
+        return self.head(h)
+
+
+class ExecutionQNetwork(nn.Module):
+    """Q^exe(s, i, z, .): [e(s); e(i); z] -> Linear 64 + ReLU -> dueling head (Appendix B.3)."""
+
+    def __init__(self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64) -> None:
+        super().__init__()
+        self.state_embed = make_embedder(observation_space["obs"])
+        self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec, out_dim=64)
+        self.body = nn.Sequential(
+            nn.Linear(self.state_embed.out_dim + self.instruction_embed.out_dim + z_dim, 64), nn.ReLU()
+        )
+        self.head = DuelingHead(64, n_actions)
+
+    def forward(self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor) -> th.Tensor:
+        x = th.cat([self.state_embed(states), self.instruction_embed(instructions), z], dim=-1)
+        return self.head(self.body(x))
+
+
+class ExplorationQNetwork(nn.Module):
+    """Q^exp(s_t, tau_:t, .): [e(s_t); e(a_{t-1}); e(r_{t-1})] -> 64 + ReLU -> LSTM 64 -> dueling head.
+
+    Previous actions are embedded with a 16-d table (index 0 = none), previous rewards with a
+    16-d linear layer (always 0 in reward-free exploration). The LSTM starts from zeros at each
+    trial; training unrolls it fused over whole sequences.
+    """
+
+    def __init__(self, observation_space: spaces.Dict, n_actions: int, hidden_size: int = 64) -> None:
+        super().__init__()
+        self.state_embed = make_embedder(observation_space["obs"])
+        self.prev_action_embed = nn.Embedding(n_actions + 1, 16)
+        self.prev_reward_embed = nn.Linear(1, 16)
+        self.body = nn.Sequential(nn.Linear(self.state_embed.out_dim + 32, 64), nn.ReLU())
+        self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
+        self.head = DuelingHead(hidden_size, n_actions)
+        self.hidden_size = hidden_size
+
+    def forward(
+        self, states: th.Tensor, prev_actions: th.Tensor, prev_rewards: th.Tensor, hidden: Optional[LSTMState] = None
+    ) -> Tuple[th.Tensor, LSTMState]:
+        """Inputs [B, T, ...] -> Q-values [B, T, A] and the final LSTM state."""
+        x = th.cat(
+            [self.state_embed(states), self.prev_action_embed(prev_actions), self.prev_reward_embed(prev_rewards)],
+            dim=-1,
+        )
+        h, hidden = self.lstm(self.body(x), hidden)
+        return self.head(h), hidden
+
+
+class DreamPolicy(BasePolicy):
+    """DREAM's networks with their target copies (Algorithm 1, lines 2-5).
+
+    Two optimizers: ``optimizer`` for the execution side (Q^exe, f, g: they share the execution
+    losses) and ``exploration_optimizer`` for Q^exp (trained on rewards computed without gradient).
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        problem_nvec: Optional[np.ndarray] = None,
+        z_dim: int = 64,
+        optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: Optional[Dict[str, Any]] = None,
+    ) -> None:
+        super().__init__(observation_space, action_space, optimizer_class=optimizer_class, optimizer_kwargs=optimizer_kwargs)
+        if problem_nvec is None:
+            raise ValueError("problem_nvec is required (the sizes of the env's problem_features)")
+        self.problem_nvec = np.asarray(problem_nvec, dtype=np.int64)
+        self.z_dim = z_dim
+        n_actions = int(action_space.n)
+        self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
+        self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
+        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim)
+        self.exploration_q = ExplorationQNetwork(observation_space, n_actions)
+        self.encoder_target = copy.deepcopy(self.encoder)
+        self.decoder_target = copy.deepcopy(self.decoder)
+        self.execution_q_target = copy.deepcopy(self.execution_q)
+        self.exploration_q_target = copy.deepcopy(self.exploration_q)
+        for target in self.targets():
+            target.requires_grad_(False)
+        self.sync_targets()
+
+        execution_params = [*self.encoder.parameters(), *self.decoder.parameters(), *self.execution_q.parameters()]
+        self.optimizer = self.optimizer_class(execution_params, lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.exploration_optimizer = self.optimizer_class(
+            self.exploration_q.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs
+        )
+
+    def onlines(self) -> Tuple[nn.Module, ...]:
+        return self.encoder, self.decoder, self.execution_q, self.exploration_q
+
+    def targets(self) -> Tuple[nn.Module, ...]:
+        return self.encoder_target, self.decoder_target, self.execution_q_target, self.exploration_q_target
+
+    def sync_targets(self) -> None:
+        """Copy every online network into its target (Algorithm 1, lines 22-23)."""
+        for online, target in zip(self.onlines(), self.targets()):
+            target.load_state_dict(online.state_dict())
+
+    def _get_constructor_parameters(self) -> Dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(problem_nvec=self.problem_nvec, z_dim=self.z_dim, lr_schedule=self._dummy_schedule)
+        return data
+
+    def _predict(self, observation: Any, deterministic: bool = True) -> th.Tensor:
+        raise NotImplementedError("DREAM acts through DREAM.predict, which keeps the trial's state")
+
+    def set_training_mode(self, mode: bool) -> None:
+        for net in self.onlines():
+            net.train(mode)
+        self.training = mode
