@@ -1,6 +1,8 @@
 """sb3-dream: DREAM and RL² for Stable-Baselines3."""
 
 import dream_envs  # noqa: F401  (registers the meta-RL envs so env IDs resolve)
+from sb3_dream.dream import DREAM, DreamPolicy
+from sb3_dream.evaluation import MetaEvalCallback, evaluate_meta
 from sb3_dream.version import __version__
 
-__all__ = ["__version__"]
+__all__ = ["DREAM", "DreamPolicy", "MetaEvalCallback", "evaluate_meta", "__version__"]

@@ -164,7 +164,7 @@ class DREAM(OffPolicyAlgorithm):
     ) -> None:
         if env is None and not (isinstance(policy, type) or policy in self.policy_aliases):
             policy, env = "DreamPolicy", policy  # DREAM("MetaBus-v0"): the env is the only argument
-        if env is None:
+        if env is None and _init_setup_model:
             raise ValueError("env is required: a trial env, its ID (e.g. 'MetaBus-v0') or a VecEnv of trial envs")
         for name, value, minimum in [
             ("buffer_size", buffer_size, 1),
@@ -218,13 +218,13 @@ class DREAM(OffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.z_dim = z_dim
 
-        self._check_trial_env(self.observation_space)
-        assert self.env is not None
-        # What the networks need to know about the problem family, kept with the model so that
-        # loading needs no env: the structured problem representation and the exploration horizon.
-        self.problem_table = np.asarray(self.env.env_method("problem_feature_table", indices=[0])[0])
-        self.problem_nvec = np.asarray(self.env.get_attr("problem_nvec", indices=[0])[0])
-        self.exploration_horizon = int(self.env.get_attr("horizon", indices=[0])[0])
+        if self.env is not None:
+            self._check_trial_env(self.observation_space)
+            # What the networks need to know about the problem family, kept with the model so that
+            # loading needs no env: the structured problem representation and the exploration horizon.
+            self.problem_table = np.asarray(self.env.env_method("problem_feature_table", indices=[0])[0])
+            self.problem_nvec = np.asarray(self.env.get_attr("problem_nvec", indices=[0])[0])
+            self.exploration_horizon = int(self.env.get_attr("horizon", indices=[0])[0])
 
         # Counters (saved with the model).
         self._n_trials = 0  # exploration trajectories collected
@@ -646,26 +646,27 @@ class DREAM(OffPolicyAlgorithm):
 
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
-        states, next_states = exe.states.repeat(2, *[1] * (exe.states.dim() - 1)), exe.next_states.repeat(
-            2, *[1] * (exe.next_states.dim() - 1)
-        )
-        instructions = exe.instructions.repeat(2, 1)
         actions, rewards, dones = exe.actions.repeat(2), exe.rewards.repeat(2), exe.dones.repeat(2)
-        q = policy.execution_q(states, instructions, z).gather(1, actions[:, None]).squeeze(1)
+        embedding = policy.execution_q.embed(exe.states, exe.instructions).repeat(2, 1)
+        q = policy.execution_q.q_values(embedding, z).gather(1, actions[:, None]).squeeze(1)
         with th.no_grad():
-            next_online = policy.execution_q(next_states, instructions, z)
+            next_online = policy.execution_q.q_values(
+                policy.execution_q.embed(exe.next_states, exe.instructions).repeat(2, 1), z
+            )
             sub = TrajectoryBatch(*(x[:n_exe] for x in traj))
             z_g_target = policy.decoder_target(sub.states, sub.actions)[rows, lengths]
             z_f_target = policy.encoder_target(sub.problem_features)
-            next_target = policy.execution_q_target(next_states, instructions, th.cat([z_g_target, z_f_target]))
+            next_target = policy.execution_q_target.q_values(
+                policy.execution_q_target.embed(exe.next_states, exe.instructions).repeat(2, 1),
+                th.cat([z_g_target, z_f_target]),
+            )
             best = next_online.argmax(dim=1, keepdim=True)
             target = rewards + self.gamma * (1.0 - dones) * next_target.gather(1, best).squeeze(1)
         td = F.mse_loss(q, target, reduction="none")
         loss_traj, loss_prob = td[:n_exe].mean(), td[n_exe:].mean()
 
-        # Information bottleneck (Equation 3) on every f in the batch, K-thresholded.
         f_norm = f_all.pow(2).sum(dim=1)
-        bottleneck = th.clamp(f_norm, min=self.bottleneck_threshold).mean() if self.bottleneck else f_norm.new_zeros(())
+        bottleneck = self.bottleneck_loss(f_all)
         # Decoder regression (Equation 4) toward stop-gradient f over every valid prefix t = 0..T.
         n_prefix = g_all.shape[1]
         valid = (th.arange(n_prefix, device=self.device)[None] <= traj.lengths[:, None]).float()
@@ -686,6 +687,13 @@ class DREAM(OffPolicyAlgorithm):
             "f_norm_sq": f_norm.mean().item(),
             "bottleneck_loss": float(bottleneck.item()),
         }
+
+    def bottleneck_loss(self, f: th.Tensor) -> th.Tensor:
+        """Equation 3 with the threshold K: mean of max(||f(T)||^2, K), so only norms above K get a
+        gradient (0 without the bottleneck)."""
+        if not self.bottleneck:
+            return f.new_zeros(())
+        return th.clamp(f.pow(2).sum(dim=-1), min=self.bottleneck_threshold).mean()
 
     def exploration_rewards(self, g: th.Tensor, f: th.Tensor, lengths: th.Tensor) -> th.Tensor:
         """Equation 5: r_t = ||f - g(tau_:t)||^2 - ||f - g(tau_:t+1)||^2 - c, for t < T (else 0).

@@ -82,9 +82,15 @@ class ExecutionQNetwork(nn.Module):
         )
         self.head = DuelingHead(64, n_actions)
 
+    def embed(self, states: th.Tensor, instructions: th.Tensor) -> th.Tensor:
+        """[e(s); e(i)]: computed once and shared by the rows that differ only in z."""
+        return th.cat([self.state_embed(states), self.instruction_embed(instructions)], dim=-1)
+
+    def q_values(self, embedding: th.Tensor, z: th.Tensor) -> th.Tensor:
+        return self.head(self.body(th.cat([embedding, z], dim=-1)))
+
     def forward(self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor) -> th.Tensor:
-        x = th.cat([self.state_embed(states), self.instruction_embed(instructions), z], dim=-1)
-        return self.head(self.body(x))
+        return self.q_values(self.embed(states, instructions), z)
 
 
 class ExplorationQNetwork(nn.Module):

@@ -1,0 +1,209 @@
+"""sb3_dream.DREAM: the math on hand-made tensors, the z sources, privacy, save/load, learning."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_dream import DREAM
+from sb3_dream.dream.policies import TrajectoryDecoder
+from sb3_dream.evaluation import evaluate_meta
+
+FAST = dict(
+    exploration_learning_starts=20,
+    execution_learning_starts=20,
+    eps_decay_steps=1000,
+    target_update_interval=100,
+    buffer_size=500,
+    execution_buffer_size=2000,
+)
+
+
+@pytest.fixture(scope="module")
+def bus_model():
+    model = DREAM("MetaBus-v0", seed=0, **FAST)
+    model.learn(600)
+    return model
+
+
+def test_defaults_are_the_papers():
+    model = DREAM("MetaBandit-v0")
+    assert (model.learning_rate, model.batch_size, model.gamma, model.train_freq_steps) == (1e-4, 32, 0.99, 4)
+    assert (model.target_update_interval, model.max_grad_norm, model.eps_decay_steps) == (5000, 10.0, 250_000)
+    assert (model.buffer_size, model.execution_buffer_size) == (16_000, 100_000)
+    assert (model.reward_penalty, model.encoder_variance, model.bottleneck_weight) == (0.01, 0.1, 1.0)
+    assert model.bottleneck and model.bottleneck_threshold == 10.0 and model.z_dim == 64
+    assert model.exploration_epsilon == 1.0 == model.execution_epsilon
+
+
+def test_exploration_reward_is_the_information_gain():
+    model = DREAM("MetaBandit-v0", reward_penalty=0.01)
+    f = th.tensor([[1.0, 0.0]])
+    # prefixes 0..3 of a 3-transition trajectory, padded to 4 transitions
+    g = th.tensor([[[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.0, 1.0], [9.0, 9.0]]])
+    r = model.exploration_rewards(g, f, lengths=th.tensor([3]))
+    # d = [1, 0.25, 0, 1, -]: r_t = d_t - d_{t+1} - c; no reward past the trajectory's end
+    np.testing.assert_allclose(r.numpy(), [[0.75 - 0.01, 0.25 - 0.01, -1.0 - 0.01, 0.0]], atol=1e-6)
+
+
+def test_bottleneck_only_pushes_norms_above_k():
+    model = DREAM("MetaBandit-v0", bottleneck_threshold=10.0)
+    f = th.tensor([[1.0, 2.0], [3.0, 3.0]], requires_grad=True)  # ||f||^2 = 5 (< K) and 18 (> K)
+    loss = model.bottleneck_loss(f)
+    loss.backward()
+    assert loss.item() == pytest.approx((10.0 + 18.0) / 2)
+    np.testing.assert_allclose(f.grad.numpy(), [[0.0, 0.0], [3.0, 3.0]])  # d/df of mean(||f||^2) on row 2 only
+    assert DREAM("MetaBandit-v0", bottleneck=False).bottleneck_loss(f).item() == 0.0
+
+
+def test_decoder_gives_every_prefix_in_one_pass_and_ignores_padding():
+    decoder = TrajectoryDecoder(gym.spaces.MultiDiscrete([9, 9, 5]), n_actions=9)
+    states = th.randint(0, 5, (2, 5, 3))
+    actions = th.randint(0, 9, (2, 4))
+    g = decoder(states, actions)
+    assert g.shape == (2, 5, 64)
+    # prefix t only depends on the first t transitions: changing later steps leaves it unchanged
+    states2, actions2 = states.clone(), actions.clone()
+    states2[:, 3:], actions2[:, 2:] = 0, 8
+    g2 = decoder(states2, actions2)
+    th.testing.assert_close(g[:, :3], g2[:, :3])
+    assert not th.allclose(g[:, 4], g2[:, 4])
+    # the empty prefix is the same for every trajectory
+    th.testing.assert_close(g[0, 0], g[1, 0])
+
+
+def test_z_sources_alternate_across_trials():
+    model = DREAM("MetaBandit-v0", seed=0, **FAST)
+    sources = []
+    original = model.end_exploration
+
+    def spy(state, idx, final_obs, problem_ids=None):
+        sources.append(bool(model._z_from_encoder[idx[0]]))
+        return original(state, idx, final_obs, problem_ids)
+
+    model.end_exploration = spy
+    model.learn(40)  # bandit trials are 2 steps
+    assert len(sources) >= 15
+    assert all(a != b for a, b in zip(sources, sources[1:]))
+
+
+def test_f_source_z_is_noisy_around_f_and_g_source_is_the_decoder():
+    model = DREAM("MetaBandit-v0", seed=0)
+    pid = np.array([3, 3, 3, 3])
+    z = model._encode(pid, noisy=True)
+    f = model._encode(pid, noisy=False)
+    assert np.allclose(f, f[0]) and not np.allclose(z, z[0])
+    assert np.std(z - f) == pytest.approx(np.sqrt(0.1), rel=0.25)
+    no_bottleneck = DREAM("MetaBandit-v0", bottleneck=False, seed=0)
+    np.testing.assert_array_equal(no_bottleneck._encode(pid, noisy=True), no_bottleneck._encode(pid, noisy=False))
+
+
+class ScrambleProblemId(gym.Wrapper):
+    """Replaces info['problem_id'] with a random number: a model must not care."""
+
+    def __init__(self, env, seed):
+        super().__init__(env)
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        return obs, {**info, "problem_id": int(self.rng.integers(1000))}
+
+    def step(self, action):
+        obs, r, term, trunc, info = self.env.step(action)
+        return obs, r, term, trunc, {**info, "problem_id": int(self.rng.integers(1000))}
+
+
+def test_no_problem_id_reaches_the_networks_at_meta_test(bus_model):
+    results = []
+    for seed in (1, 2):
+        env = ScrambleProblemId(gym.make("MetaBus-v0", split="test"), seed)
+        r = evaluate_meta(bus_model, env, n_trials=10, split="test", seed=5)
+        results.append(r.returns)
+    np.testing.assert_array_equal(results[0], results[1])
+    # and predict() gives the same actions whatever the problem, given the same observations
+    env = gym.make("MetaBus-v0")
+    obs, _ = env.reset(seed=0, options={"problem_id": 0})
+    a1, _ = bus_model.predict(obs, deterministic=True)
+    obs2, _ = env.reset(seed=0, options={"problem_id": 11})
+    a2, _ = bus_model.predict(obs2, deterministic=True)
+    assert a1 == a2
+
+
+def test_predict_state_follows_the_recurrent_convention(bus_model):
+    vec = make_vec_env("MetaBus-v0", n_envs=3, seed=0)
+    obs = vec.reset()
+    actions, state = bus_model.predict(obs, deterministic=True)
+    assert actions.shape == (3,) and isinstance(state, tuple)
+    starts = np.zeros(3, bool)
+    for _ in range(30):
+        obs, _, dones, _ = vec.step(actions)
+        actions, state = bus_model.predict(obs, state=state, episode_start=dones | starts, deterministic=True)
+    mean, _ = evaluate_policy(bus_model, gym.make("MetaBus-v0"), n_eval_episodes=3)
+    assert -2.5 <= mean <= 1.0
+
+
+def test_save_load_round_trip(bus_model, tmp_path):
+    bus_model.save(tmp_path / "dream.zip")
+    loaded = DREAM.load(tmp_path / "dream.zip")
+    assert loaded._n_trials == bus_model._n_trials and loaded._n_updates == bus_model._n_updates
+    np.testing.assert_array_equal(loaded.problem_table, bus_model.problem_table)
+    a = evaluate_meta(bus_model, "MetaBus-v0", n_trials=8, seed=3)
+    b = evaluate_meta(loaded, "MetaBus-v0", n_trials=8, seed=3)
+    np.testing.assert_array_equal(a.returns, b.returns)
+    bus_model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    assert len(loaded.replay_buffer.exploration) == len(bus_model.replay_buffer.exploration)
+    resumed = DREAM.load(tmp_path / "dream.zip", env=make_vec_env("MetaBus-v0", n_envs=2))
+    resumed.load_replay_buffer(tmp_path / "buffer.pkl")
+    steps = resumed.num_timesteps
+    resumed.learn(100, reset_num_timesteps=False)  # training resumes where it stopped
+    assert resumed.num_timesteps >= steps + 100 and resumed._n_updates > bus_model._n_updates
+
+
+def test_vectorised_training_logs_dream_scalars(tmp_path):
+    from stable_baselines3.common.logger import configure
+
+    model = DREAM(make_vec_env("MetaBus-v0", n_envs=4, seed=0), seed=0, **FAST)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(1200, log_interval=10)
+    assert model.num_timesteps >= 1200 and model._n_updates > 0
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0]
+    for key in (
+        "rollout/exploration_length",
+        "rollout/execution_return_z_f",
+        "rollout/execution_return_z_g",
+        "train/exploration_reward",
+        "train/decoder_loss",
+        "train/f_norm_sq",
+    ):
+        assert key in header
+
+
+def test_bad_input():
+    with pytest.raises(TypeError, match="Dict observation"):
+        DREAM("CartPole-v1")
+    with pytest.raises(ValueError, match="batch_size"):
+        DREAM("MetaBandit-v0", batch_size=0)
+    with pytest.raises(ValueError, match="env is required"):
+        DREAM("DreamPolicy")
+
+
+@pytest.mark.slow
+def test_dream_learns_the_bandit_that_needs_exploration():
+    """MetaBandit |A| = 8: only the informative action reveals which of 8 actions pays (chance 1/8)."""
+    model = DREAM(
+        "MetaBandit-v0",
+        seed=0,
+        exploration_learning_starts=50,
+        execution_learning_starts=50,
+        eps_decay_steps=4000,
+        target_update_interval=200,
+    )
+    model.learn(8000)
+    result = evaluate_meta(model, "MetaBandit-v0", n_trials=100)
+    assert result.mean >= 0.9
