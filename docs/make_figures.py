@@ -1,7 +1,8 @@
 """Render a picture of each env with the project's own renderer: ``python docs/make_figures.py``.
 
 Each picture shows a trial in progress: the oracle is played for a few steps of its first
-execution episode (after its exploration), so the picture shows the instruction and the agent.
+execution episode (after its exploration), so the picture shows the instruction and the agent;
+with 0 steps, the picture is the last moment of exploration (the 3D env: reading the sign).
 Writes ``docs/<env>.png``.
 """
 
@@ -20,7 +21,7 @@ PICTURES = {
     "metabus": ("MetaBus-v0", {}, 1),
     "metabus_map": ("MetaBus-v0", {"variant": "map"}, 1),
     "metacook": ("MetaCook-v0", {}, 3),
-    "signnav3d": ("SignNav3D-v0", {}, 2),
+    "signnav3d": ("SignNav3D-v0", {}, 0),  # 0: the moment exploration reads the sign
     "metabandit": ("MetaBandit-v0", {"n_actions": 4, "horizon": 3}, 2),
 }
 
@@ -31,8 +32,11 @@ def picture(env_id: str, kwargs: dict, exec_steps: int, seed: int):
     oracle.reset()
     obs, info = env.reset(seed=seed)
     steps_in_execution = 0
-    while steps_in_execution < exec_steps:
-        obs, _, terminated, _, info = env.step(oracle.act(obs, public_info(info)))
+    while steps_in_execution < exec_steps or exec_steps == 0:
+        action = oracle.act(obs, public_info(info))
+        if exec_steps == 0 and action == env.unwrapped.end_episode_action:
+            break
+        obs, _, terminated, _, info = env.step(action)
         if terminated:
             break
         if obs["phase"] == EXECUTION:
