@@ -31,7 +31,7 @@ def single_env_sps(env_id: str, steps: int) -> float:
 
 
 def vec_env_sps(env_id: str, steps: int, n_envs: int, vec_env_cls) -> float:
-    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls)
+    vec = make_vec_env(f"dream_envs:{env_id}", n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls)
     rng = np.random.default_rng(0)
     vec.reset()
     n_calls = max(1, steps // n_envs)

@@ -127,6 +127,18 @@ class MetaBusEnv(TrialEnv):
         is_train = ids % TRAIN_EVERY == 0
         return ids[is_train] if split == "train" else ids[~is_train]
 
+    @property
+    def problem_nvec(self) -> np.ndarray:
+        # Appendix B.1: the colored permutation, plus (distracting) where each gray bus leads.
+        n = len(PERMUTATIONS)
+        return np.array([n] + ([4, 4, 4, 4] if self.variant == "distracting" else []), dtype=np.int64)
+
+    def problem_features(self, problem_id: int) -> np.ndarray:
+        """``[colored permutation index]`` (+ ``[gray destination index of each gray bus]`` when distracting)."""
+        n = len(PERMUTATIONS)
+        gray = list(PERMUTATIONS[problem_id // n]) if self.variant == "distracting" else []
+        return np.array([problem_id % n, *gray], dtype=np.int64)
+
     def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
         # Every goal is valid in every problem and split: generalisation is over problems only.
         return np.array([1 + int(self.np_random.integers(len(GOALS)))])

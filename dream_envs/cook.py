@@ -286,6 +286,15 @@ class MetaCookEnv(TrialEnv):
     def _split_problem_ids(self, split: str) -> np.ndarray:
         return _split_tables()[split][0].copy()
 
+    @property
+    def problem_nvec(self) -> np.ndarray:
+        # Appendix B.1: the problem is the triple of the fridges' ingredients.
+        return np.array([N_INGREDIENTS] * N_FRIDGES, dtype=np.int64)
+
+    def problem_features(self, problem_id: int) -> np.ndarray:
+        """The fridge triple, 0-based: ``[ingredient of fridge k - 1 for k in 0, 1, 2]``."""
+        return np.array(fridge_contents(problem_id), dtype=np.int64) - 1
+
     def instructions(self, problem_id: int, split: Optional[str] = None) -> list[Tuple[int, int]]:
         """The recipes of ``problem_id`` in ``split`` (default: this env's split); empty if none."""
         split = self.split if split is None else check_choice("split", split, SPLITS)

@@ -73,7 +73,8 @@ def test_oracle_beats_random(env_id):
 @pytest.mark.parametrize("vec_env_cls", [DummyVecEnv, SubprocVecEnv])
 def test_vectorised_auto_reset_draws_new_problems(env_id, vec_env_cls):
     n_envs = 2 if env_id == "SignNav3D-v0" else 8
-    vec = make_vec_env(env_id, n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls)
+    # Subprocesses start fresh: "module:EnvID" makes Gymnasium import dream_envs there first.
+    vec = make_vec_env(f"dream_envs:{env_id}", n_envs=n_envs, seed=0, vec_env_cls=vec_env_cls)
     obs = vec.reset()
     assert obs["obs"].shape[0] == n_envs
     rng = np.random.default_rng(0)
@@ -90,3 +91,21 @@ def test_vectorised_auto_reset_draws_new_problems(env_id, vec_env_cls):
     assert trials_done > 0
     if len(gym.make(env_id).unwrapped.problem_ids()) > 1:
         assert len(problems) > 1
+
+
+def test_problem_features_are_a_structured_injective_representation(env_id):
+    env = gym.make(env_id).unwrapped
+    table = env.problem_feature_table()
+    nvec = env.problem_nvec
+    assert table.shape == (env.n_problems, len(nvec))
+    assert (table >= 0).all() and (table < nvec).all()
+    assert len({tuple(row) for row in table}) == env.n_problems  # distinct problems stay distinct
+
+
+def test_paper_problem_representations():
+    bus = gym.make("MetaBus-v0").unwrapped
+    assert bus.problem_nvec.tolist() == [24, 4, 4, 4, 4]
+    assert bus.problem_features(24 * 23 + 5).tolist() == [5, 3, 2, 1, 0]
+    assert gym.make("MetaBus-v0", variant="map").unwrapped.problem_nvec.tolist() == [24]
+    cook = gym.make("MetaCook-v0").unwrapped
+    assert cook.problem_nvec.tolist() == [7, 7, 7] and cook.problem_features(1 + 7 * 2).tolist() == [1, 2, 0]

@@ -1,0 +1,73 @@
+"""DREAM's training throughput with the paper's hyperparameters, and where the time goes.
+
+Both agents learn from the first trials (learning-start thresholds are set low so that every
+measured step pays for its updates: one exploration and one execution update per 4 env steps,
+batch 32, as in the paper). Prints env steps per second and the share of wall-clock spent acting
+(the networks choosing actions), stepping the envs, and in gradient updates.
+
+    python benchmarks/dream_speed.py --env MetaBus-v0 --steps 4000 --n-envs 1 8 [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections import defaultdict
+
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+
+from sb3_dream import DREAM
+
+
+def timed(obj, name: str, totals: dict, key: str) -> None:
+    original = getattr(obj, name)
+
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return original(*args, **kwargs)
+        finally:
+            totals[key] += time.perf_counter() - start
+
+    setattr(obj, name, wrapper)
+
+
+def measure(env_id: str, env_kwargs: dict, n_envs: int, steps: int, warmup: int, seed: int, **dream_kwargs) -> dict:
+    env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
+    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **dream_kwargs)
+    model.learn(warmup)  # fill the buffers so that both agents update from here on
+    totals: dict = defaultdict(float)
+    timed(model.env, "step", totals, "env")
+    timed(model, "_act", totals, "act")
+    timed(model, "train", totals, "update")
+    start = time.perf_counter()
+    model.learn(steps, reset_num_timesteps=False)
+    wall = time.perf_counter() - start
+    env.close()
+    return {"sps": steps / wall, "wall": wall, **{k: v / wall for k, v in totals.items()}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="MetaBus-v0")
+    parser.add_argument("--variant", default=None, help="MetaBus variant (distracting, map, vanilla)")
+    parser.add_argument("--steps", type=int, default=4000, help="measured env steps per setting")
+    parser.add_argument("--warmup", type=int, default=1000)
+    parser.add_argument("--n-envs", type=int, nargs="+", default=[1, 8])
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--train-freq", type=int, default=4, help="env steps per update (paper: 4)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    th.set_num_threads(args.threads)
+    env_kwargs = {"variant": args.variant} if args.variant else {}
+    print(f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}")
+    print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
+    for n in args.n_envs:
+        r = measure(args.env, env_kwargs, n, args.steps, args.warmup, args.seed, train_freq=args.train_freq)
+        other = 1 - r["act"] - r["env"] - r["update"]
+        print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
+
+
+if __name__ == "__main__":
+    main()
