@@ -184,6 +184,21 @@ def test_vectorised_training_logs_dream_scalars(tmp_path):
         assert key in header
 
 
+@pytest.mark.parametrize("bootstrap", [False, True])
+def test_horizon_cut_execution_steps_are_terminal_unless_bootstrapping(bootstrap):
+    env = make_vec_env("MetaBus-v0", n_envs=1, seed=0, env_kwargs={"horizon": 3})
+    model = DREAM(env, seed=0, bootstrap_at_horizon=bootstrap, **FAST)
+    model.learn(60)
+    buf = model.replay_buffer.execution
+    terminals = int(buf.dones[: len(buf)].sum())
+    # horizon 3 is too short to reach a goal: every execution episode ends by the horizon or by the
+    # end-episode action (always terminal); one execution episode per finished trial
+    if bootstrap:
+        assert 0 <= terminals < model._episode_num
+    else:
+        assert terminals == model._episode_num > 10
+
+
 def test_bad_input():
     with pytest.raises(TypeError, match="Dict observation"):
         DREAM("CartPole-v1")

@@ -125,6 +125,10 @@ class DREAM(OffPolicyAlgorithm):
     :param bottleneck_weight: lambda, the weight of the bottleneck penalty.
     :param max_grad_norm: gradient-norm clip of each optimizer.
     :param z_dim: dimension of z.
+    :param bootstrap_at_horizon: if False (default), an execution episode cut by the inner-episode
+        horizon is terminal for the TD targets, as an episode "done" in the authors' DQN: the grid
+        worlds' episodes *are* 20 steps long and their states hold no clock. True bootstraps there,
+        treating the horizon as a time limit (SB3's ``handle_timeout_termination``).
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
@@ -154,6 +158,7 @@ class DREAM(OffPolicyAlgorithm):
         bottleneck_weight: float = 1.0,
         max_grad_norm: float = 10.0,
         z_dim: int = 64,
+        bootstrap_at_horizon: bool = False,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -217,6 +222,7 @@ class DREAM(OffPolicyAlgorithm):
         self.bottleneck_weight = bottleneck_weight
         self.max_grad_norm = max_grad_norm
         self.z_dim = z_dim
+        self.bootstrap_at_horizon = bootstrap_at_horizon
 
         if self.env is not None:
             self._check_trial_env(self.observation_space)
@@ -555,7 +561,8 @@ class DREAM(OffPolicyAlgorithm):
                     next_states[k] = infos[e]["final_obs"]
                     source = "f" if self._z_from_encoder[e] else "g"
                     self._returns_by_source[source].append(infos[e]["episode_return"])
-            terminal = np.array([ended[e] and not infos[e].get("episode_truncated", False) for e in executed])
+            truncated = np.array([bool(infos[e].get("episode_truncated", False)) for e in executed])
+            terminal = ended[executed] & ~(truncated & self.bootstrap_at_horizon)
             self.replay_buffer.execution.add(
                 {
                     "states": obs["obs"][executed],
