@@ -1,0 +1,316 @@
+"""Observation embedders of the paper's networks (Appendix B.3), one per Dict key.
+
+Every embedder maps a raw observation tensor with any leading batch dimensions
+``[*batch, *space.shape]`` (integers for ``Discrete``/``MultiDiscrete``, uint8 for images, floats for
+``Box``) to ``[*batch, embed_dim]``. They do the preprocessing themselves (embedding lookups instead
+of SB3's one-hot encoding, division by 255 for images), so they take observations as stored in the
+replay buffer, without :func:`stable_baselines3.common.preprocessing.preprocess_obs`.
+
+* ``MultiDiscrete`` (grid states, instructions, problem IDs): each dimension is embedded
+  independently with an embedding matrix of dimension 32, the embeddings are concatenated and two
+  linear layers of 256 and 64 units with ReLU activations follow (paper, "State, instruction, and
+  problem ID embeddings").
+* uint8 images (the 3D sign env): 3 convolutions with 32 channels, kernels 5, 5, 4 and stride 2,
+  ReLU activations, then a linear layer of 128 units (paper, after Chevalier-Boisvert, 2018).
+* ``Discrete`` (previous action, episode-start flag): one embedding matrix (16 units in RL²).
+* ``Box`` vectors: a linear layer (the previous reward: 16 units in RL²) or, for states, the same
+  256 -> 64 MLP as ``MultiDiscrete`` states.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Optional, Sequence
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
+from torch import nn
+
+
+def _flatten_batch(x: th.Tensor, event_shape: Sequence[int]) -> tuple[th.Tensor, tuple[int, ...]]:
+    """Split ``x`` into its leading batch dims and its event dims; return ``x`` as ``[N, *event]``."""
+    n_event = len(event_shape)
+    batch_shape = tuple(x.shape[: x.dim() - n_event]) if n_event else tuple(x.shape)
+    return x.reshape(-1, *event_shape), batch_shape
+
+
+class MultiDiscreteEmbedder(nn.Module):
+    """Per-dimension embeddings (``per_dim`` units each), concatenated, then a ReLU MLP.
+
+    The per-dimension tables are stored as one ``nn.Embedding`` with offsets (one lookup for all
+    dimensions), which is the same function as one table per dimension.
+
+    :param nvec: the ``MultiDiscrete`` sizes (any shape; flattened).
+    :param per_dim: embedding size of each dimension (paper: 32).
+    :param hidden_dims: the MLP's layer sizes (paper: ``(256, 64)``); the last one is ``embed_dim``.
+    """
+
+    def __init__(self, nvec: np.ndarray, per_dim: int = 32, hidden_dims: Sequence[int] = (256, 64)) -> None:
+        super().__init__()
+        nvec = np.asarray(nvec, dtype=np.int64)
+        self.event_shape = tuple(nvec.shape)
+        flat = nvec.reshape(-1)
+        offsets = np.concatenate([[0], np.cumsum(flat)[:-1]])
+        self.register_buffer("offsets", th.as_tensor(offsets, dtype=th.long), persistent=False)
+        self.embedding = nn.Embedding(int(flat.sum()), per_dim)
+        layers: list[nn.Module] = []
+        in_dim = per_dim * len(flat)
+        for out_dim in hidden_dims:
+            layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
+            in_dim = out_dim
+        self.mlp = nn.Sequential(*layers)
+        self.embed_dim = in_dim
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        flat, batch_shape = _flatten_batch(x, self.event_shape)
+        idx = flat.reshape(flat.shape[0], -1).long() + self.offsets
+        out = self.mlp(self.embedding(idx).flatten(1))
+        return out.reshape(*batch_shape, self.embed_dim)
+
+
+class DiscreteEmbedder(nn.Module):
+    """A learned embedding matrix for a ``Discrete(n)`` value (paper: 16 units for actions and flags)."""
+
+    def __init__(self, n: int, embed_dim: int = 16, start: int = 0) -> None:
+        super().__init__()
+        self.start = int(start)
+        self.embedding = nn.Embedding(int(n), embed_dim)
+        self.embed_dim = embed_dim
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        return self.embedding(x.long() - self.start)
+
+
+class LinearEmbedder(nn.Module):
+    """A linear layer over a flattened ``Box`` (paper: the previous reward, 16 units)."""
+
+    def __init__(self, shape: Sequence[int], embed_dim: int = 16) -> None:
+        super().__init__()
+        self.event_shape = tuple(shape)
+        self.linear = nn.Linear(int(np.prod(shape)) if len(shape) else 1, embed_dim)
+        self.embed_dim = embed_dim
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        flat, batch_shape = _flatten_batch(x.float(), self.event_shape)
+        return self.linear(flat.reshape(flat.shape[0], -1)).reshape(*batch_shape, self.embed_dim)
+
+
+class BoxMLPEmbedder(nn.Module):
+    """A ReLU MLP over a flattened ``Box`` state (the 256 -> 64 MLP of the discrete states)."""
+
+    def __init__(self, shape: Sequence[int], hidden_dims: Sequence[int] = (256, 64)) -> None:
+        super().__init__()
+        self.event_shape = tuple(shape)
+        layers: list[nn.Module] = []
+        in_dim = int(np.prod(shape)) if len(shape) else 1
+        for out_dim in hidden_dims:
+            layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
+            in_dim = out_dim
+        self.mlp = nn.Sequential(*layers)
+        self.embed_dim = in_dim
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        flat, batch_shape = _flatten_batch(x.float(), self.event_shape)
+        return self.mlp(flat.reshape(flat.shape[0], -1)).reshape(*batch_shape, self.embed_dim)
+
+
+class ImageEmbedder(nn.Module):
+    """The paper's 3D-navigation CNN: 3 x (conv 32 channels, stride 2, kernels 5/5/4) + linear 128.
+
+    Takes uint8 images, channel-first ``[*batch, C, H, W]`` (SB3 transposes channel-last image
+    observations with ``VecTransposeImage``; a channel-last space is transposed here too).
+    ReLU follows every layer (the paper says "in between" the convolutions; a ReLU after the last
+    convolution and after the linear layer makes the stack a proper nonlinear feature extractor).
+    """
+
+    def __init__(self, space: spaces.Box, channels: int = 32, embed_dim: int = 128, normalize: bool = True) -> None:
+        super().__init__()
+        shape = tuple(space.shape)
+        self.channels_first = bool(is_image_space_channels_first(space))
+        self.event_shape = shape
+        c = shape[0] if self.channels_first else shape[-1]
+        self.normalize = normalize
+        self.cnn = nn.Sequential(
+            nn.Conv2d(c, channels, kernel_size=5, stride=2),
+            nn.ReLU(),
+            nn.Conv2d(channels, channels, kernel_size=5, stride=2),
+            nn.ReLU(),
+            nn.Conv2d(channels, channels, kernel_size=4, stride=2),
+            nn.ReLU(),
+            nn.Flatten(),
+        )
+        with th.no_grad():
+            probe = th.zeros(1, *self._chw(shape))
+            n_flat = self.cnn(probe).shape[1]
+        self.linear = nn.Sequential(nn.Linear(n_flat, embed_dim), nn.ReLU())
+        self.embed_dim = embed_dim
+
+    def _chw(self, shape: Sequence[int]) -> tuple[int, ...]:
+        return tuple(shape) if self.channels_first else (shape[2], shape[0], shape[1])
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        flat, batch_shape = _flatten_batch(x, self.event_shape)
+        flat = flat.float()
+        if self.normalize:
+            flat = flat / 255.0
+        if not self.channels_first:
+            flat = flat.permute(0, 3, 1, 2)
+        return self.linear(self.cnn(flat)).reshape(*batch_shape, self.embed_dim)
+
+
+def make_state_embedder(
+    space: spaces.Space,
+    per_dim: int = 32,
+    hidden_dims: Sequence[int] = (256, 64),
+    image_embed_dim: int = 128,
+    image_channels: int = 32,
+    discrete_embed_dim: Optional[int] = None,
+    name: str = "obs",
+    normalize_images: bool = True,
+) -> nn.Module:
+    """The paper's embedder for a state-like space (``obs``, ``instruction``, a problem ID).
+
+    ``MultiDiscrete`` -> :class:`MultiDiscreteEmbedder`; ``Discrete(n)`` -> the same with ``nvec=[n]``
+    (or a plain embedding of ``discrete_embed_dim`` units if given); uint8 image ``Box`` ->
+    :class:`ImageEmbedder`; other ``Box``/``MultiBinary`` -> :class:`BoxMLPEmbedder`.
+    The returned module has an ``embed_dim`` attribute.
+
+    :param name: the Dict key (only used in error messages).
+    """
+    if isinstance(space, spaces.MultiDiscrete):
+        if np.any(np.asarray(space.start) != 0):
+            raise ValueError(
+                f"observation_space[{name!r}]: MultiDiscrete spaces with a non-zero start are not supported"
+            )
+        return MultiDiscreteEmbedder(space.nvec, per_dim, hidden_dims)
+    if isinstance(space, spaces.Discrete):
+        if discrete_embed_dim is not None:
+            return DiscreteEmbedder(int(space.n), discrete_embed_dim, start=int(space.start))
+        if int(space.start) != 0:
+            raise ValueError(f"observation_space[{name!r}]: Discrete spaces with a non-zero start are not supported")
+        emb = MultiDiscreteEmbedder(np.array([int(space.n)]), per_dim, hidden_dims)
+        emb.event_shape = ()  # a Discrete value has no event dims
+        return emb
+    if isinstance(space, spaces.Box) and is_image_space(space, check_channels=False, normalized_image=False):
+        return ImageEmbedder(space, channels=image_channels, embed_dim=image_embed_dim, normalize=normalize_images)
+    if isinstance(space, (spaces.Box, spaces.MultiBinary)):
+        return BoxMLPEmbedder(space.shape, hidden_dims)
+    raise ValueError(
+        f"observation_space[{name!r}] is {space}: accepted spaces are MultiDiscrete, Discrete, "
+        "Box (uint8 HxWxC or CxHxW images, or float vectors) and MultiBinary"
+    )
+
+
+def embed_dict(embedders: nn.ModuleDict, obs: Dict[str, th.Tensor]) -> th.Tensor:
+    """Embed every key of ``obs`` that has an embedder and concatenate along the last dim."""
+    return th.cat([embedders[k](obs[k]) for k in embedders.keys()], dim=-1)
+
+
+# Keys of the trial envs' Dict observation (see dream_envs.core) that the recurrent Q-networks embed.
+TRIAL_KEYS = ("obs", "instruction", "episode_start", "prev_action", "prev_reward", "final_obs")
+# Keys that may be present but are not embedded: the phase is implied by the episode-start flags.
+IGNORED_KEYS = ("phase",)
+
+
+class TrialInputEmbedder(nn.Module):
+    """Embeds one step of a trial env's Dict observation: the RL² input of the paper (Appendix B.3).
+
+    ``e(s)`` (``obs``: :func:`make_state_embedder`, 64 units, 128 for images), ``e(i)``
+    (``instruction``: 64), ``e(a)`` (``prev_action``: embedding matrix, 16), ``e(r)``
+    (``prev_reward``: linear, 16), ``e(d)`` (``episode_start``: embedding matrix, 16), concatenated.
+    Only ``obs`` is required; the other keys are embedded when the space has them and ``keys``
+    lists them. The optional ``final_obs`` key (see :class:`sb3_dream.common.wrappers.FinalObsWrapper`)
+    goes through the *same* state embedder as ``obs`` and is multiplied by the ``episode_start``
+    flag, as it only holds a state on the first step of an inner episode.
+
+    :param observation_space: a Dict space with at least an ``obs`` key.
+    :param keys: which keys to embed if present (default: all of :data:`TRIAL_KEYS`).
+    :param normalize_images: divide image observations by 255.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        keys: Sequence[str] = TRIAL_KEYS,
+        per_dim: int = 32,
+        state_hidden_dims: Sequence[int] = (256, 64),
+        image_embed_dim: int = 128,
+        instruction_embed_dim: int = 64,
+        action_embed_dim: int = 16,
+        reward_embed_dim: int = 16,
+        done_embed_dim: int = 16,
+        normalize_images: bool = True,
+    ) -> None:
+        super().__init__()
+        check_trial_observation_space(observation_space, keys)
+        sp = observation_space.spaces
+        self.keys = [k for k in keys if k in sp]
+        self.embedders = nn.ModuleDict()
+        self.embedders["obs"] = make_state_embedder(
+            sp["obs"],
+            per_dim,
+            state_hidden_dims,
+            image_embed_dim=image_embed_dim,
+            name="obs",
+            normalize_images=normalize_images,
+        )
+        if "instruction" in self.keys:
+            self.embedders["instruction"] = make_state_embedder(
+                sp["instruction"], per_dim, (state_hidden_dims[0], instruction_embed_dim), name="instruction"
+            )
+        if "prev_action" in self.keys:
+            self.embedders["prev_action"] = DiscreteEmbedder(
+                int(sp["prev_action"].n), action_embed_dim, start=int(sp["prev_action"].start)
+            )
+        if "prev_reward" in self.keys:
+            self.embedders["prev_reward"] = LinearEmbedder(sp["prev_reward"].shape, reward_embed_dim)
+        if "episode_start" in self.keys:
+            self.embedders["episode_start"] = DiscreteEmbedder(
+                int(sp["episode_start"].n), done_embed_dim, start=int(sp["episode_start"].start)
+            )
+        self.use_final_obs = "final_obs" in self.keys
+        self.embed_dim = sum(int(m.embed_dim) for m in self.embedders.values())
+        if self.use_final_obs:
+            self.embed_dim += int(self.embedders["obs"].embed_dim)
+
+    def forward(self, obs: Dict[str, th.Tensor]) -> th.Tensor:
+        """``obs[k]``: ``[*batch, *space[k].shape]`` -> ``[*batch, embed_dim]``."""
+        parts = [self.embedders[k](obs[k]) for k in self.embedders.keys()]
+        if self.use_final_obs:
+            e_final = self.embedders["obs"](obs["final_obs"])
+            if "episode_start" in obs:
+                e_final = e_final * obs["episode_start"].reshape(e_final.shape[:-1]).unsqueeze(-1).float()
+            parts.append(e_final)
+        return th.cat(parts, dim=-1)
+
+
+_EXPECTED_KEY_SPACES = {
+    "instruction": (spaces.MultiDiscrete, spaces.Discrete),
+    "episode_start": (spaces.Discrete,),
+    "prev_action": (spaces.Discrete,),
+    "prev_reward": (spaces.Box,),
+}
+
+
+def check_trial_observation_space(observation_space: spaces.Space, keys: Sequence[str] = TRIAL_KEYS) -> None:
+    """Raise a ``ValueError`` unless ``observation_space`` is a Dict the trial embedders can handle."""
+    accepted = ", ".join(repr(k) for k in (*TRIAL_KEYS, *IGNORED_KEYS))
+    if not isinstance(observation_space, spaces.Dict):
+        raise ValueError(
+            f"observation_space must be a gymnasium.spaces.Dict with at least the key 'obs' (accepted keys: "
+            f"{accepted}), got {observation_space}. Wrap a plain env with "
+            "sb3_dream.common.wrappers.RL2ObservationWrapper (adds prev_action, prev_reward)."
+        )
+    sp = observation_space.spaces
+    if "obs" not in sp:
+        raise ValueError(f"observation_space is missing the key 'obs' (has {sorted(sp)}; accepted keys: {accepted})")
+    unknown = sorted(set(sp) - set(TRIAL_KEYS) - set(IGNORED_KEYS))
+    if unknown:
+        raise ValueError(f"observation_space has unsupported keys {unknown}; accepted keys: {accepted}")
+    for key, types in _EXPECTED_KEY_SPACES.items():
+        if key in sp and key in keys and not isinstance(sp[key], types):
+            names = " or ".join(t.__name__ for t in types)
+            raise ValueError(f"observation_space[{key!r}] must be {names}, got {sp[key]}")
+    if "final_obs" in sp and sp["final_obs"] != sp["obs"]:
+        raise ValueError(f"observation_space['final_obs'] must equal observation_space['obs'], got {sp['final_obs']}")

@@ -1,0 +1,125 @@
+"""Recurrent Q-learning parts shared by RL2DQN and DREAM's exploration policy.
+
+* :class:`DuelingHead`: Q = V + A - mean_a A (Wang et al., 2016), the head of every Q-network of
+  the paper.
+* :class:`LinearEpsilonSchedule`: epsilon-greedy rate decayed linearly over a number of env steps
+  (paper: 1 -> 0.01 over 500k steps for RL², 250k per policy for DREAM).
+* LSTM state helpers: zero states, resets at trial starts, a fused ``[B, T]`` unroll with an
+  R2D2-style burn-in whose gradient is cut (:func:`unroll_lstm`).
+* :func:`double_dqn_targets` and :func:`masked_td_loss`: double-DQN targets over padded sequences.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Tuple
+
+import torch as th
+from torch import nn
+from torch.nn import functional as F
+
+LSTMStates = Tuple[th.Tensor, th.Tensor]
+TD_LOSSES = ("mse", "huber")
+
+
+class DuelingHead(nn.Module):
+    """Two linear heads, value V (1 unit) and advantage A (``n_actions`` units): Q = V + A - mean A."""
+
+    def __init__(self, in_dim: int, n_actions: int) -> None:
+        super().__init__()
+        self.value = nn.Linear(in_dim, 1)
+        self.advantage = nn.Linear(in_dim, n_actions)
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        adv = self.advantage(x)
+        return self.value(x) + adv - adv.mean(dim=-1, keepdim=True)
+
+
+class LinearEpsilonSchedule:
+    """Epsilon decayed linearly from ``initial`` to ``final`` over ``steps`` env steps, then constant.
+
+    Unlike SB3's DQN (a fraction of the ``learn`` call's total), the paper counts the decay in
+    absolute env steps, so a run's schedule does not depend on how long it is.
+    """
+
+    def __init__(self, initial: float = 1.0, final: float = 0.01, steps: int = 500_000) -> None:
+        for name, value in (("initial", initial), ("final", final)):
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"exploration_{name}_eps must be in [0, 1], got {value!r}")
+        if steps < 0:
+            raise ValueError(f"exploration_steps must be >= 0, got {steps!r}")
+        self.initial, self.final, self.steps = float(initial), float(final), int(steps)
+
+    def __call__(self, num_timesteps: int) -> float:
+        if self.steps == 0 or num_timesteps >= self.steps:
+            return self.final
+        return self.initial + (self.final - self.initial) * num_timesteps / self.steps
+
+
+def zero_lstm_states(num_layers: int, batch: int, hidden: int, device: th.device | str = "cpu") -> LSTMStates:
+    """``(h, c)`` of zeros, each ``[num_layers, batch, hidden]`` (the initial state of a trial)."""
+    h = th.zeros(num_layers, batch, hidden, device=device)
+    return h, th.zeros_like(h)
+
+
+def reset_lstm_states(states: LSTMStates, episode_start: th.Tensor) -> LSTMStates:
+    """Zero the states of the batch entries whose ``episode_start`` (``[batch]``) is set."""
+    keep = (1.0 - episode_start.float()).view(1, -1, 1)
+    return states[0] * keep, states[1] * keep
+
+
+def unroll_lstm(
+    lstm: nn.LSTM,
+    x: th.Tensor,
+    states: LSTMStates,
+    burn_in: int = 0,
+    burn_in_mask: Optional[th.Tensor] = None,
+) -> tuple[th.Tensor, LSTMStates]:
+    """Run a ``batch_first`` LSTM fused over ``x`` (``[B, T, F]``) from ``states``.
+
+    With ``burn_in > 0`` and a ``burn_in_mask`` (``[B]`` bool), the unroll is split after ``burn_in``
+    steps and the state of the masked sequences is detached there, so their first ``burn_in``
+    steps only warm the state up (R2D2's burn-in: no gradient flows into them). Sequences outside
+    the mask keep the gradient through the whole unroll. Padding after a sequence's end needs no
+    packing: the LSTM is causal, so padded steps never change the outputs of earlier steps.
+    """
+    if burn_in <= 0 or burn_in_mask is None or burn_in >= x.shape[1]:
+        return lstm(x, states)
+    head, mid = lstm(x[:, :burn_in], states)
+    cut = burn_in_mask.view(1, -1, 1)
+    mid = (th.where(cut, mid[0].detach(), mid[0]), th.where(cut, mid[1].detach(), mid[1]))
+    tail, last = lstm(x[:, burn_in:], mid)
+    return th.cat([head, tail], dim=1), last
+
+
+def double_dqn_targets(
+    next_q_online: th.Tensor,
+    next_q_target: th.Tensor,
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    gamma: float,
+) -> th.Tensor:
+    """Double-DQN targets r + gamma (1 - done) Q_target(s', argmax_a Q_online(s', a)).
+
+    :param next_q_online: ``[..., A]`` online Q-values of the next observations (picks the action).
+    :param next_q_target: ``[..., A]`` target-network Q-values of the next observations (evaluates it).
+    :param rewards: ``[...]``.
+    :param dones: ``[...]``, 1 where the next observation is terminal (no bootstrap).
+    """
+    best = next_q_online.argmax(dim=-1, keepdim=True)
+    next_value = next_q_target.gather(-1, best).squeeze(-1)
+    return rewards + gamma * (1.0 - dones) * next_value
+
+
+def masked_td_loss(q: th.Tensor, targets: th.Tensor, mask: th.Tensor, kind: str = "mse") -> th.Tensor:
+    """Mean TD loss over the steps where ``mask`` is 1 (padding and burn-in excluded).
+
+    :param kind: ``"mse"`` (squared TD error, what the authors ran) or ``"huber"`` (SB3 DQN's).
+    """
+    if kind == "mse":
+        err = F.mse_loss(q, targets, reduction="none")
+    elif kind == "huber":
+        err = F.smooth_l1_loss(q, targets, reduction="none")
+    else:
+        raise ValueError(f"td_loss={kind!r} is not valid; accepted values: {', '.join(map(repr, TD_LOSSES))}")
+    mask = mask.float()
+    return (err * mask).sum() / mask.sum().clamp(min=1.0)
