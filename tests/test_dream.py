@@ -199,6 +199,17 @@ def test_horizon_cut_execution_steps_are_terminal_unless_bootstrapping(bootstrap
         assert terminals == model._episode_num > 10
 
 
+def test_image_trials_train_and_meta_test():
+    """SignNav3D: SB3 stores images channel-first, the env and info["final_obs"] give them channel-last."""
+    small = dict(exploration_learning_starts=2, execution_learning_starts=2, buffer_size=20, execution_buffer_size=200)
+    model = DREAM("SignNav3D-v0", seed=0, batch_size=4, **small)
+    assert model.observation_space["obs"].shape == (3, 60, 80)
+    model.learn(40)
+    assert model._n_updates > 0
+    result = evaluate_meta(model, "SignNav3D-v0", n_trials=1)
+    assert result.returns.shape == (1, 1) and -1.0 <= result.mean <= 1.0
+
+
 def test_bad_input():
     with pytest.raises(TypeError, match="Dict observation"):
         DREAM("CartPole-v1")

@@ -48,19 +48,13 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
 from dream_envs import EXECUTION, EXPLORATION, ScriptedAgent
+from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
 from sb3_dream.dream.policies import DreamPolicy
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 
 REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
-
-
-def linear_epsilon(step: int, initial: float, final: float, decay_steps: int) -> float:
-    """Linear decay from ``initial`` to ``final`` over ``decay_steps`` steps, then constant."""
-    if decay_steps <= 0:
-        return final
-    return initial + (final - initial) * min(1.0, step / decay_steps)
 
 
 @dataclass
@@ -256,6 +250,9 @@ class DREAM(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
+        self._epsilon_schedule = LinearEpsilonSchedule(
+            self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
+        )
         self._rng = np.random.default_rng(self.seed)
         self.policy_kwargs.update(problem_nvec=self.problem_nvec, z_dim=self.z_dim)
         self.policy = self.policy_class(self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs)
@@ -301,16 +298,12 @@ class DREAM(OffPolicyAlgorithm):
     @property
     def exploration_epsilon(self) -> float:
         """Epsilon of the exploration policy (decays with exploration-episode steps)."""
-        return linear_epsilon(
-            self._n_exploration_steps, self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
-        )
+        return self._epsilon_schedule(self._n_exploration_steps)
 
     @property
     def execution_epsilon(self) -> float:
         """Epsilon of the execution policy (decays with execution-episode steps)."""
-        return linear_epsilon(
-            self._n_execution_steps, self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
-        )
+        return self._epsilon_schedule(self._n_execution_steps)
 
     # ------------------------------------------------------------------ acting
     def _obs_tensor(self, x: np.ndarray) -> th.Tensor:
@@ -395,7 +388,7 @@ class DREAM(OffPolicyAlgorithm):
         With ``problem_ids`` (training) the trajectories are stored and z alternates between the
         encoder and the decoder per trial; without (meta-test) z = g(tau^exp).
         """
-        state.states[idx, state.length[idx]] = final_obs
+        state.states[idx, state.length[idx]] = self._model_states(final_obs)
         use_encoder = np.zeros(len(idx), dtype=bool)
         if problem_ids is not None:
             assert self._z_from_encoder is not None
@@ -445,14 +438,24 @@ class DREAM(OffPolicyAlgorithm):
         actions = self._act(obs, trial, *eps)
         return (actions if vectorized else actions[0:1].reshape(())), trial.as_tuple()
 
+    def _model_states(self, states: np.ndarray) -> np.ndarray:
+        """States in the model's layout: SB3 stores images channel-first (``VecTransposeImage``),
+        while a raw env and ``info["final_obs"]`` give them channel-last."""
+        shape = self.observation_space["obs"].shape
+        states = np.asarray(states)
+        if len(shape) == 3 and states.shape[-3:] != shape and states.shape[-3:] == (shape[1], shape[2], shape[0]):
+            return np.moveaxis(states, -1, -3)
+        return states
+
     def _batch_observation(self, observation: Dict[str, Any]) -> Tuple[Dict[str, np.ndarray], bool]:
         if not isinstance(observation, dict) or any(k not in observation for k in REQUIRED_KEYS):
             raise ValueError(f"observation must be a dict with the trial keys {REQUIRED_KEYS}")
-        obs_shape = self.observation_space["obs"].shape
-        vectorized = np.asarray(observation["obs"]).shape != obs_shape
+        obs = {k: np.asarray(v) for k, v in observation.items()}
+        obs["obs"] = self._model_states(obs["obs"])
+        vectorized = obs["obs"].shape != self.observation_space["obs"].shape
         if vectorized:
-            return {k: np.asarray(v) for k, v in observation.items()}, True
-        return {k: np.asarray(v)[None] for k, v in observation.items()}, False
+            return obs, True
+        return {k: v[None] for k, v in obs.items()}, False
 
     def as_trial_agent(self, deterministic: bool = True) -> ScriptedAgent:
         """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
@@ -558,7 +561,7 @@ class DREAM(OffPolicyAlgorithm):
             next_states = np.array(new_obs["obs"][executed], copy=True)
             for k, e in enumerate(executed):
                 if ended[e]:
-                    next_states[k] = infos[e]["final_obs"]
+                    next_states[k] = self._model_states(infos[e]["final_obs"])
                     source = "f" if self._z_from_encoder[e] else "g"
                     self._returns_by_source[source].append(infos[e]["episode_return"])
             truncated = np.array([bool(infos[e].get("episode_truncated", False)) for e in executed])

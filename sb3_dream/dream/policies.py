@@ -21,7 +21,8 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_dream.common.torch_layers import DuelingHead, MultiDiscreteEmbedder, make_embedder
+from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder
+from sb3_dream.common.recurrent import DuelingHead
 
 LSTMState = Tuple[th.Tensor, th.Tensor]
 
@@ -31,11 +32,12 @@ class ProblemEncoder(nn.Module):
 
     def __init__(self, problem_nvec: np.ndarray, z_dim: int = 64) -> None:
         super().__init__()
+        self.embed = MultiDiscreteEmbedder(problem_nvec, hidden_dims=(256,))
         # No activation on the output: z lives in all of R^d (the bottleneck bounds its norm).
-        self.embed = MultiDiscreteEmbedder(problem_nvec, out_dim=z_dim, final_activation=False)
+        self.out = nn.Linear(256, z_dim)
 
     def forward(self, problem_features: th.Tensor) -> th.Tensor:
-        return self.embed(problem_features)
+        return self.out(self.embed(problem_features))
 
 
 class TrajectoryDecoder(nn.Module):
@@ -50,9 +52,9 @@ class TrajectoryDecoder(nn.Module):
         self, observation_space: spaces.Space, n_actions: int, z_dim: int = 64, hidden_size: int = 128
     ) -> None:
         super().__init__()
-        self.state_embed = make_embedder(observation_space)
+        self.state_embed = make_state_embedder(observation_space)
         self.action_embed = nn.Embedding(n_actions, 32)
-        d = self.state_embed.out_dim
+        d = self.state_embed.embed_dim
         self.transition = nn.Sequential(nn.Linear(2 * d + 32, 128), nn.ReLU(), nn.Linear(128, 64), nn.ReLU())
         self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
         self.head = nn.Sequential(nn.Linear(hidden_size, 128), nn.ReLU(), nn.Linear(128, z_dim))
@@ -75,10 +77,10 @@ class ExecutionQNetwork(nn.Module):
 
     def __init__(self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64) -> None:
         super().__init__()
-        self.state_embed = make_embedder(observation_space["obs"])
-        self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec, out_dim=64)
+        self.state_embed = make_state_embedder(observation_space["obs"])
+        self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec)
         self.body = nn.Sequential(
-            nn.Linear(self.state_embed.out_dim + self.instruction_embed.out_dim + z_dim, 64), nn.ReLU()
+            nn.Linear(self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim, 64), nn.ReLU()
         )
         self.head = DuelingHead(64, n_actions)
 
@@ -103,10 +105,10 @@ class ExplorationQNetwork(nn.Module):
 
     def __init__(self, observation_space: spaces.Dict, n_actions: int, hidden_size: int = 64) -> None:
         super().__init__()
-        self.state_embed = make_embedder(observation_space["obs"])
+        self.state_embed = make_state_embedder(observation_space["obs"])
         self.prev_action_embed = nn.Embedding(n_actions + 1, 16)
         self.prev_reward_embed = nn.Linear(1, 16)
-        self.body = nn.Sequential(nn.Linear(self.state_embed.out_dim + 32, 64), nn.ReLU())
+        self.body = nn.Sequential(nn.Linear(self.state_embed.embed_dim + 32, 64), nn.ReLU())
         self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
         self.head = DuelingHead(hidden_size, n_actions)
         self.hidden_size = hidden_size

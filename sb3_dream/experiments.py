@@ -1,0 +1,595 @@
+"""Experiment runner: algorithms x envs x seeds -> learning curves, a summary table and figures.
+
+Each run trains one algorithm on one env with one seed for ``--steps`` env steps and evaluates it
+on the held-out split every ``--eval-freq`` steps (``--eval-trials`` meta-test trials, greedy) with
+:class:`sb3_dream.evaluation.MetaEvalCallback`, which writes the run's learning curve as a CSV
+(``env_steps, wall_clock_s, mean, ci, exploration_length``). Runs go to parallel processes, up to
+``--jobs`` (default: the machine's cores) at once.
+
+**Resumable.** A run writes ``<name>.csv.partial`` and renames it to ``<name>.csv`` only when it
+is complete, so a finished run is skipped when the command is run again (whatever the other
+options: use ``--force`` or a new ``--out`` to redo it) and an interrupted one starts over.
+
+**Outputs** under ``--out``::
+
+    <env>/<algo>_seed<k>.csv          learning curve on the held-out split (--eval-splits test)
+    <env>/<algo>_seed<k>_train.csv    ... on the training split, with --eval-splits test train
+    <env>/<algo>_seed<k>.json         the run's settings and final numbers
+    <env>/<algo>_seed<k>.zip          the trained model, with --save-models
+    <env>/oracle_<split>.json         the env's scripted optimal agent on that split
+    summary.csv, summary.md           final return mean +- std over seeds, env steps, wall-clock
+    curves.png                        return vs env steps, mean +- std over seeds, a panel per env
+                                      (and split), like the paper's Figures 5 and 6
+
+**Algorithms:** ``dream`` (:class:`~sb3_dream.DREAM`), ``dream_no_bottleneck``
+(``DREAM(bottleneck=False)``, the paper's ablation) and ``rl2dqn``
+(:class:`~sb3_dream.rl2dqn.RL2DQN`, the paper's RL² baseline). ``--preset paper`` keeps every
+default (the paper's); ``--preset fast`` applies :data:`sb3_dream.dream.presets.PRESETS` ``["fast"]``
+to DREAM and :data:`RL2DQN_PRESETS` ``["fast"]`` (the matching schedule changes) to RL2DQN.
+
+**Envs** are registered IDs with optional constructor arguments after colons, e.g.
+``MetaBus-v0:variant=map`` or ``MetaCook-v0:n_exec_episodes=2``. ``split`` there sets the
+training split only; evaluation uses ``--eval-splits``.
+
+Figure 5 (distracting bus and map) on a laptop-sized budget::
+
+    python -m sb3_dream.experiments --envs MetaBus-v0 MetaBus-v0:variant=map \\
+        --algos dream dream_no_bottleneck rl2dqn --seeds 0 1 2 --steps 200000 --preset fast \\
+        --out results/figure5
+
+matplotlib (a dev extra) is needed for the figure only; without it the figure is skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import concurrent.futures
+import csv
+import dataclasses
+import importlib
+import json
+import multiprocessing
+import os
+import pathlib
+import time
+import traceback
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from dream_envs.core import SPLITS
+
+ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
+PRESET_NAMES = ("paper", "fast")
+CURVE_COLUMNS = ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")
+
+RL2DQN_PRESETS: Dict[str, Dict[str, Any]] = {
+    "paper": {},
+    # The schedule changes of DREAM's "fast" preset, for RL²: learning starts after ~100 trials of
+    # the grid worlds (4000 steps) instead of 16000 steps, epsilon decays over 60K steps (DREAM's
+    # 2 x 30K) instead of 500K, and targets sync every 1000 updates instead of 5000.
+    "fast": {"learning_starts": 4000, "exploration_steps": 60_000, "target_update_interval": 1000},
+}
+
+
+def _parse_value(text: str) -> Any:
+    """A Python literal if ``text`` is one (``3``, ``0.5``, ``True``, ``'map'``), else the string."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def parse_kwargs(items: Sequence[str], name: str) -> Dict[str, Any]:
+    """``["a=1", "b=map"]`` -> ``{"a": 1, "b": "map"}``; a ValueError naming ``name`` otherwise."""
+    kwargs: Dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.isidentifier():
+            raise ValueError(f"{name} entries must look like key=value, got {item!r}")
+        kwargs[key] = _parse_value(value)
+    return kwargs
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvSpec:
+    """A registered env ID and constructor arguments: ``"MetaBus-v0:variant=map:n_exec_episodes=2"``.
+
+    Colon-separated parts with ``=`` are arguments; the others form the ID, so the
+    ``"dream_envs:MetaBus-v0"`` form also works.
+    """
+
+    env_id: str
+    kwargs: Tuple[Tuple[str, Any], ...] = ()
+
+    @classmethod
+    def parse(cls, text: str) -> "EnvSpec":
+        parts = text.split(":")
+        id_parts = [p for p in parts if "=" not in p]
+        if not id_parts or not all(id_parts):
+            raise ValueError(f"envs entry {text!r} is not valid: expected ENV_ID[:key=value...], e.g. MetaBus-v0:variant=map")
+        kwargs = parse_kwargs([p for p in parts if "=" in p], f"envs entry {text!r}")
+        return cls(":".join(id_parts), tuple(sorted(kwargs.items())))
+
+    @property
+    def env_kwargs(self) -> Dict[str, Any]:
+        """Arguments of the training env (all of them)."""
+        return dict(self.kwargs)
+
+    @property
+    def eval_kwargs(self) -> Dict[str, Any]:
+        """Arguments of the evaluation env (``split`` and ``n_exec_episodes`` are set separately)."""
+        return {k: v for k, v in self.kwargs if k not in ("split", "n_exec_episodes")}
+
+    @property
+    def n_exec_episodes(self) -> int:
+        return int(self.env_kwargs.get("n_exec_episodes", 1))
+
+    @property
+    def tag(self) -> str:
+        """A folder name: ``MetaBus-v0_variant-map``."""
+        name = self.env_id.split(":")[-1]
+        return "_".join([name, *(f"{k}-{v}" for k, v in self.kwargs)]).replace("/", "-").replace(" ", "")
+
+    @property
+    def label(self) -> str:
+        """A title: ``MetaBus-v0 (variant=map)``."""
+        name = self.env_id.split(":")[-1]
+        return name + (" (" + ", ".join(f"{k}={v}" for k, v in self.kwargs) + ")" if self.kwargs else "")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Settings shared by every run of an experiment."""
+
+    steps: int = 100_000
+    n_envs: int = 1
+    preset: str = "paper"
+    eval_freq: int = 10_000
+    eval_trials: int = 100
+    eval_splits: Tuple[str, ...] = ("test",)
+    threads: int = 1
+    device: str = "auto"
+    save_models: bool = False
+    dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
+    rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "n_envs", "eval_freq", "eval_trials", "threads"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.preset not in PRESET_NAMES:
+            raise ValueError(f"preset={self.preset!r} is not valid; accepted values: {', '.join(map(repr, PRESET_NAMES))}")
+        if not self.eval_splits or any(s not in SPLITS for s in self.eval_splits):
+            raise ValueError(f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}")
+        if "bottleneck" in dict(self.dream_kwargs):
+            raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
+
+    def settings(self, algo: str) -> Dict[str, Any]:
+        """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
+        data = dataclasses.asdict(self)
+        for key in ("threads", "device", "save_models", "dream_kwargs", "rl2dqn_kwargs"):
+            data.pop(key)
+        data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
+        data["eval_splits"] = list(self.eval_splits)
+        return data
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One (algorithm, env, seed) run and where its files go."""
+
+    algo: str
+    env: EnvSpec
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.algo}_seed{self.seed}"
+
+    def folder(self, out: pathlib.Path) -> pathlib.Path:
+        return out / self.env.tag
+
+    def curve_path(self, out: pathlib.Path, split: str = "test") -> pathlib.Path:
+        suffix = "" if split == "test" else f"_{split}"
+        return self.folder(out) / f"{self.name}{suffix}.csv"
+
+    def info_path(self, out: pathlib.Path) -> pathlib.Path:
+        return self.folder(out) / f"{self.name}.json"
+
+    def model_path(self, out: pathlib.Path) -> pathlib.Path:
+        return self.folder(out) / f"{self.name}.zip"
+
+    def is_complete(self, out: pathlib.Path, config: RunConfig) -> bool:
+        return all(self.curve_path(out, split).exists() for split in config.eval_splits)
+
+
+def make_model(algo: str, env: Any, config: RunConfig, seed: int) -> Any:
+    """The model of ``algo`` on ``env`` with the preset and the per-algorithm overrides of ``config``."""
+    if algo in ("dream", "dream_no_bottleneck"):
+        from sb3_dream.dream import DREAM
+        from sb3_dream.dream.presets import PRESETS
+
+        kwargs = {**PRESETS[config.preset], **dict(config.dream_kwargs)}
+        return DREAM(env, seed=seed, device=config.device, bottleneck=algo == "dream", **kwargs)
+    if algo == "rl2dqn":
+        from sb3_dream.rl2dqn import RL2DQN
+
+        kwargs = {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
+        return RL2DQN(env, seed=seed, device=config.device, **kwargs)
+    raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ALGOS))}")
+
+
+def _make_progress_callback(tag: str, **kwargs: Any) -> Any:
+    """A :class:`MetaEvalCallback` that prints one tagged line per evaluation (runs share a terminal)."""
+    from sb3_dream.evaluation import MetaEvalCallback
+
+    class TaggedMetaEvalCallback(MetaEvalCallback):
+        def _evaluate(self) -> None:
+            super()._evaluate()
+            row = self.results[-1]
+            print(
+                f"[{tag}] {row['env_steps']:>8} steps {row['wall_clock_s']:7.0f}s  {self.split} return "
+                f"{row['mean']:.3f} ± {row['ci']:.3f}  exploration length {row['exploration_length']:.1f}",
+                flush=True,
+            )
+
+    return TaggedMetaEvalCallback(**kwargs)
+
+
+def _partial(path: pathlib.Path) -> pathlib.Path:
+    return path.with_name(path.name + ".partial")
+
+
+def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
+    """Train and evaluate one run; its files appear under their final names only once complete."""
+    import torch as th
+    from stable_baselines3.common.callbacks import CallbackList
+    from stable_baselines3.common.env_util import make_vec_env
+
+    th.set_num_threads(config.threads)
+    folder = run.folder(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    partial = {split: _partial(run.curve_path(out, split)) for split in config.eval_splits}
+    for path in partial.values():
+        path.unlink(missing_ok=True)  # an interrupted run starts over
+
+    tag = f"{run.algo} {run.env.label} seed {run.seed}"
+    env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
+    model = make_model(run.algo, env, config, run.seed)
+    callbacks = [
+        _make_progress_callback(
+            tag if len(config.eval_splits) == 1 else f"{tag} {split}",
+            eval_env=run.env.env_id,
+            eval_freq=config.eval_freq,
+            n_trials=config.eval_trials,
+            split=split,
+            n_exec_episodes=run.env.n_exec_episodes,
+            seed=0,  # every run and evaluation meets the same problems: a paired comparison
+            env_kwargs=run.env.eval_kwargs,
+            csv_path=str(partial[split]),
+        )
+        for split in config.eval_splits
+    ]
+    start = time.perf_counter()
+    model.learn(config.steps, callback=CallbackList(callbacks))
+    seconds = time.perf_counter() - start
+    env.close()
+
+    if config.save_models:
+        tmp = run.model_path(out).with_name(run.name + ".partial.zip")
+        model.save(tmp)
+        os.replace(tmp, run.model_path(out))
+    finals = {split: cb.results[-1] for split, cb in zip(config.eval_splits, callbacks)}
+    info = {
+        "algo": run.algo,
+        "env": run.env.env_id,
+        "env_kwargs": run.env.env_kwargs,
+        "seed": run.seed,
+        "settings": config.settings(run.algo),
+        "train_seconds": seconds,
+        "final": finals,
+    }
+    tmp_info = run.info_path(out).with_suffix(".json.partial")
+    tmp_info.write_text(json.dumps(info, indent=2, default=str))
+    os.replace(tmp_info, run.info_path(out))
+    # The held-out curve (the completion mark) is renamed last.
+    for split in sorted(config.eval_splits, key=lambda s: s == "test"):
+        os.replace(partial[split], run.curve_path(out, split))
+    return {"run": run, "status": "done", "seconds": seconds, "final": finals}
+
+
+def _run_worker(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
+    """:func:`run_one` for a worker process: a failure is reported, not raised, so the others go on."""
+    try:
+        return run_one(run, config, out)
+    except Exception as error:  # noqa: BLE001  (reported with its traceback, the experiment goes on)
+        return {"run": run, "status": "failed", "error": f"{type(error).__name__}: {error}", "traceback": traceback.format_exc()}
+
+
+def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int]) -> List[Run]:
+    """Every (env, algo, seed) combination, validated."""
+    unknown = [a for a in algos if a not in ALGOS]
+    if unknown or not algos:
+        raise ValueError(f"algos={list(algos)!r} is not valid; accepted values: {', '.join(map(repr, ALGOS))}")
+    if not envs:
+        raise ValueError("envs must name at least one env")
+    if not seeds or any(isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0 for s in seeds):
+        raise ValueError(f"seeds must be a non-empty list of integers >= 0, got {list(seeds)!r}")
+    return [Run(algo, env, int(seed)) for env in envs for algo in dict.fromkeys(algos) for seed in dict.fromkeys(seeds)]
+
+
+def run_experiments(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, jobs: Optional[int] = None, force: bool = False
+) -> List[Dict[str, Any]]:
+    """Run every unfinished run of ``runs``, up to ``jobs`` at once (default: the machine's cores).
+
+    Returns one record per run with ``status`` "done", "skipped" or "failed". ``jobs=1`` runs them
+    one after the other in this process.
+    """
+    out = pathlib.Path(out)
+    records: List[Dict[str, Any]] = []
+    pending: List[Run] = []
+    for run in runs:
+        if run.is_complete(out, config) and not force:
+            _warn_if_settings_differ(run, config, out)
+            print(f"skip {run.algo} {run.env.label} seed {run.seed}: finished ({run.curve_path(out)})", flush=True)
+            records.append({"run": run, "status": "skipped"})
+        else:
+            pending.append(run)
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
+        raise ValueError(f"jobs must be an integer >= 1 or None (the machine's cores), got {jobs!r}")
+    jobs = min(jobs or os.cpu_count() or 1, max(len(pending), 1))
+    if pending:
+        print(f"running {len(pending)} run(s), {jobs} at a time, {config.steps} env steps each", flush=True)
+    if jobs == 1:
+        records += [_run_worker(run, config, out) for run in pending]
+    elif pending:
+        # "spawn": fresh interpreters, no forked torch thread pools; the worker is named by its
+        # module so that pickling works under ``python -m sb3_dream.experiments`` too.
+        worker = importlib.import_module("sb3_dream.experiments")._run_worker
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+            futures = [pool.submit(worker, run, config, out) for run in pending]
+            for future in concurrent.futures.as_completed(futures):
+                records.append(future.result())
+    for record in records:
+        if record["status"] == "failed":
+            run = record["run"]
+            print(f"FAILED {run.algo} {run.env.label} seed {run.seed}: {record['error']}\n{record['traceback']}", flush=True)
+    return records
+
+
+def _warn_if_settings_differ(run: Run, config: RunConfig, out: pathlib.Path) -> None:
+    try:
+        recorded = json.loads(run.info_path(out).read_text())["settings"]
+    except (OSError, ValueError, KeyError):
+        return
+    wanted = json.loads(json.dumps(config.settings(run.algo), default=str))
+    changed = sorted(k for k in wanted if recorded.get(k) != wanted[k])
+    if changed:
+        print(
+            f"warning: {run.curve_path(out)} was made with other settings ({', '.join(changed)}); "
+            "it is kept: use --force or another --out to redo it",
+            flush=True,
+        )
+
+
+# ---------------------------------------------------------------------------------------------- results
+def load_curve(path: pathlib.Path) -> Dict[str, np.ndarray]:
+    """A learning-curve CSV as arrays, one per column."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{path} holds no evaluation")
+    return {k: np.array([float(r[k]) for r in rows]) for k in CURVE_COLUMNS}
+
+
+def oracle_return(env: EnvSpec, split: str, n_trials: int, out: pathlib.Path) -> Optional[float]:
+    """Mean execution return of the env's scripted optimal agent on ``split`` (cached as JSON)."""
+    import gymnasium as gym
+
+    import dream_envs
+    from sb3_dream.evaluation import evaluate_meta
+
+    path = out / env.tag / f"oracle_{split}.json"
+    if path.exists():
+        return float(json.loads(path.read_text())["mean"])
+    try:
+        made = gym.make(env.env_id, split=split, n_exec_episodes=env.n_exec_episodes, **env.eval_kwargs)
+        result = evaluate_meta(dream_envs.make_oracle(made), made, n_trials=n_trials, split=split, n_exec_episodes=env.n_exec_episodes)
+        made.close()
+    except (AttributeError, NotImplementedError):  # an env without an oracle
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"mean": result.mean, "ci": result.ci, "n_trials": n_trials}))
+    return result.mean
+
+
+def summarize(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+) -> List[Dict[str, Any]]:
+    """One row per (env, algo, split): the final return's mean and std over the finished seeds
+    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock."""
+    rows = []
+    groups: Dict[Tuple[EnvSpec, str], List[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.env, run.algo), []).append(run)
+    for (env, algo), group in groups.items():
+        for split in config.eval_splits:
+            curves = [load_curve(r.curve_path(out, split)) for r in group if r.curve_path(out, split).exists()]
+            row: Dict[str, Any] = {"env": env.label, "algo": algo, "split": split, "seeds": len(curves)}
+            if curves:
+                finals = np.array([c["mean"][-1] for c in curves])
+                row.update(
+                    final_return_mean=float(finals.mean()),
+                    final_return_std=float(finals.std()),
+                    env_steps=int(np.mean([c["env_steps"][-1] for c in curves])),
+                    wall_clock_s=float(np.mean([c["wall_clock_s"][-1] for c in curves])),
+                )
+            if oracles and (env.tag, split) in oracles:
+                row["oracle_return"] = oracles[(env.tag, split)]
+            rows.append(row)
+    return rows
+
+
+SUMMARY_COLUMNS = (
+    "env", "algo", "split", "seeds", "final_return_mean", "final_return_std", "env_steps", "wall_clock_s", "oracle_return"
+)
+
+
+def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
+    """Write ``summary.csv`` and ``summary.md`` under ``out``; return the markdown table."""
+    with open(out / "summary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: row.get(k, "") for k in SUMMARY_COLUMNS})
+    lines = [
+        "| env | algo | split | seeds | final return (mean ± std) | optimal | env steps | wall-clock |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        ret = f"{row['final_return_mean']:.3f} ± {row['final_return_std']:.3f}" if row["seeds"] else "-"
+        optimal = f"{row['oracle_return']:.3f}" if "oracle_return" in row else "-"
+        steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
+        clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
+        lines.append(f"| {row['env']} | {row['algo']} | {row['split']} | {row['seeds']} | {ret} | {optimal} | {steps} | {clock} |")
+    table = "\n".join(lines) + "\n"
+    (out / "summary.md").write_text(table)
+    return table
+
+
+def _format_seconds(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def plot_curves(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+) -> pathlib.Path:
+    """``curves.png``: execution return vs env steps, mean +- std over seeds, one panel per env and
+    split, with the optimal return dashed (the paper's Figures 5 and 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = list(dict.fromkeys(run.env for run in runs))
+    algos = list(dict.fromkeys(run.algo for run in runs))
+    panels = [(env, split) for env in envs for split in config.eval_splits]
+    n_cols = min(len(panels), 3)
+    n_rows = -(-len(panels) // n_cols)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(5 * n_cols, 3.6 * n_rows), squeeze=False)
+    for ax, (env, split) in zip(axes.flat, panels):
+        for k, algo in enumerate(algos):
+            paths = [r.curve_path(out, split) for r in runs if r.env == env and r.algo == algo]
+            curves = [load_curve(p) for p in paths if p.exists()]
+            if not curves:
+                continue
+            n = min(len(c["mean"]) for c in curves)
+            steps = curves[0]["env_steps"][:n]
+            values = np.stack([c["mean"][:n] for c in curves])
+            mean, std = values.mean(axis=0), values.std(axis=0)
+            color = f"C{k}"
+            ax.plot(steps, mean, color=color, label=f"{algo} ({len(curves)} seed{'s' if len(curves) > 1 else ''})")
+            ax.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
+        if oracles and (env.tag, split) in oracles:
+            ax.axhline(oracles[(env.tag, split)], color="k", ls="--", lw=1, label="optimal")
+        ax.set_title(f"{env.label}" + ("" if split == "test" else f", {split} problems"))
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize="small")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    path = out / "curves.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sb3_dream.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--algos", nargs="+", default=["dream"], help=f"any of {', '.join(ALGOS)}")
+    parser.add_argument("--envs", nargs="+", default=["MetaBus-v0"], help="env IDs, optionally ID:key=value...")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+    parser.add_argument("--steps", type=int, default=100_000, help="env steps per run")
+    parser.add_argument("--n-envs", type=int, default=1, help="vectorised envs per run")
+    parser.add_argument("--preset", default="paper", choices=PRESET_NAMES)
+    parser.add_argument("--eval-freq", type=int, default=10_000, help="env steps between evaluations")
+    parser.add_argument("--eval-trials", type=int, default=100, help="meta-test trials per evaluation")
+    parser.add_argument("--eval-splits", nargs="+", default=["test"], choices=SPLITS, help="test = held-out problems")
+    parser.add_argument("--dream-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="DREAM overrides")
+    parser.add_argument("--rl2dqn-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="RL2DQN overrides")
+    parser.add_argument("--jobs", type=int, default=None, help="parallel runs (default: the machine's cores)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--save-models", action="store_true", help="save each trained model next to its curve")
+    parser.add_argument("--out", default="results/experiments")
+    parser.add_argument("--force", action="store_true", help="redo finished runs")
+    parser.add_argument("--no-plot", action="store_true", help="skip the figure")
+    parser.add_argument("--no-oracle", action="store_true", help="skip the optimal scripted agent's return")
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
+    """Run the experiment described by ``argv`` (see ``--help``); return the run records."""
+    args = build_parser().parse_args(argv)
+    try:
+        config = RunConfig(
+            steps=args.steps,
+            n_envs=args.n_envs,
+            preset=args.preset,
+            eval_freq=args.eval_freq,
+            eval_trials=args.eval_trials,
+            eval_splits=tuple(dict.fromkeys(args.eval_splits)),
+            threads=args.threads,
+            device=args.device,
+            save_models=args.save_models,
+            dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
+            rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
+        )
+        runs = plan_runs(args.algos, [EnvSpec.parse(e) for e in args.envs], args.seeds)
+        if args.jobs is not None and args.jobs < 1:
+            raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
+    except ValueError as error:
+        raise SystemExit(f"error: {error}")
+
+    import dream_envs  # noqa: F401  (registers the env IDs in this process)
+
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    records = run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
+
+    oracles: Dict[Tuple[str, str], float] = {}
+    if not args.no_oracle:
+        for env in dict.fromkeys(run.env for run in runs):
+            for split in config.eval_splits:
+                value = oracle_return(env, split, config.eval_trials, out)
+                if value is not None:
+                    oracles[(env.tag, split)] = value
+    table = write_summary(summarize(runs, config, out, oracles), out)
+    print(f"\n{table}\nwrote {out / 'summary.csv'} and {out / 'summary.md'}")
+    if not args.no_plot:
+        try:
+            print("wrote", plot_curves(runs, config, out, oracles))
+        except ImportError:
+            print("matplotlib is not installed: no figure (pip install matplotlib, or sb3-dream[dev])")
+    failed = [r for r in records if r["status"] == "failed"]
+    if failed:
+        raise SystemExit(f"{len(failed)} run(s) failed")
+    return records
+
+
+if __name__ == "__main__":
+    main()

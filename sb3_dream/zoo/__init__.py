@@ -1,0 +1,80 @@
+"""rl-zoo3 integration: train, tune and watch DREAM and RL2DQN with the RL Baselines3 Zoo.
+
+rl-zoo3 has no plugin mechanism: its algorithms live in the dict ``rl_zoo3.utils.ALGOS`` (also
+exported as ``rl_zoo3.ALGOS``) and its Optuna samplers in
+``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (with ``HYPERPARAMS_CONVERTER``, which turns a
+stored trial's parameters back into constructor arguments). :func:`register` adds to all three:
+
+===========  ====================================  ================================
+zoo name     algorithm                             default hyperparameter file
+===========  ====================================  ================================
+``dream``    :class:`sb3_dream.DREAM`              ``sb3_dream/zoo/hyperparams/dream.yml``
+``rl2_dqn``  :class:`sb3_dream.rl2dqn.RL2DQN`      ``sb3_dream/zoo/hyperparams/rl2_dqn.yml``
+===========  ====================================  ================================
+
+The ``sb3-dream-zoo`` command (:mod:`sb3_dream.zoo.cli`) registers them, imports
+:mod:`dream_envs` (so ``--env MetaBus-v0`` resolves) and runs rl-zoo3's own ``train``,
+``enjoy`` or ``record_video`` with every flag passed through::
+
+    sb3-dream-zoo train --algo dream --env MetaBus-v0 --env-kwargs variant:"'map'"
+    sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 -n 400
+
+From Python (e.g. a script that calls rl-zoo3's functions itself)::
+
+    import sb3_dream.zoo
+    sb3_dream.zoo.register()
+"""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Dict, Type
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
+ZOO_ALGOS = ("dream", "rl2_dqn")
+
+
+def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
+    """The zoo names and classes of this package's algorithms."""
+    from sb3_dream.dream import DREAM
+    from sb3_dream.rl2dqn import RL2DQN
+
+    return {"dream": DREAM, "rl2_dqn": RL2DQN}
+
+
+def hyperparams_path(algo: str) -> pathlib.Path:
+    """The packaged hyperparameter file of ``algo`` ("dream" or "rl2_dqn"), usable as ``--conf-file``."""
+    if algo not in ZOO_ALGOS:
+        raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")
+    return HYPERPARAMS_DIR / f"{algo}.yml"
+
+
+def register() -> None:
+    """Add ``dream`` and ``rl2_dqn`` to rl-zoo3's algorithm table and Optuna samplers (idempotent).
+
+    Also imports :mod:`dream_envs`, which registers the trial envs with Gymnasium.
+
+    :raises ImportError: if rl-zoo3 is not installed (``pip install "sb3-dream[zoo]"``).
+    """
+    try:
+        import rl_zoo3.hyperparams_opt as zoo_opt
+        import rl_zoo3.utils as zoo_utils
+    except ImportError as error:
+        raise ImportError(
+            'sb3_dream.zoo needs rl-zoo3: pip install "sb3-dream[zoo]" (or pip install rl_zoo3)'
+        ) from error
+
+    import dream_envs  # noqa: F401  (registers MetaBus-v0, MetaCook-v0, SignNav3D-v0, MetaBandit-v0)
+    from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS
+
+    # Mutate the tables in place: train.py, enjoy.py and exp_manager.py all imported these same
+    # dict objects, so the names become valid --algo choices everywhere.
+    zoo_utils.ALGOS.update(algorithms())
+    zoo_opt.HYPERPARAMS_SAMPLER.update(SAMPLERS)
+    if hasattr(zoo_opt, "HYPERPARAMS_CONVERTER"):  # absent from older rl-zoo3 releases
+        zoo_opt.HYPERPARAMS_CONVERTER.update(CONVERTERS)
+
+
+__all__ = ["HYPERPARAMS_DIR", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]

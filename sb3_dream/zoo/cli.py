@@ -1,0 +1,148 @@
+"""``sb3-dream-zoo``: rl-zoo3's ``train``, ``enjoy`` and ``record_video`` with DREAM and RL2DQN.
+
+Usage::
+
+    sb3-dream-zoo train --algo dream --env MetaBus-v0 [any rl_zoo3.train flag]
+    sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 [any rl_zoo3.enjoy flag]
+    sb3-dream-zoo record_video --algo dream --env MetaBus-v0 [any rl_zoo3.record_video flag]
+
+(or ``python -m sb3_dream.zoo ...``). Before handing over to rl-zoo3 it registers the algorithms
+(:func:`sb3_dream.zoo.register`) and adds defaults that the zoo's own defaults get wrong for trial
+envs; a flag given on the command line always wins, as the defaults are put first:
+
+* ``train`` with ``--algo dream|rl2_dqn``: ``--conf-file`` defaults to the packaged
+  hyperparameters (:func:`sb3_dream.zoo.hyperparams_path`), as rl-zoo3 looks only inside its own
+  package. With a trial env and no ``--eval-env-kwargs``, the zoo's evaluation (``--eval-freq``)
+  runs on the held-out problems: the eval env gets ``--env-kwargs`` plus ``split:'test'``.
+* ``enjoy`` / ``record_video``: ``--folder`` defaults to ``logs`` (where ``train`` writes) rather
+  than the zoo's pretrained-agent folder, which would try to download from the Hugging Face hub;
+  ``enjoy`` adds ``--no-render`` for envs without a "human" render mode (the trial envs render
+  ``rgb_array`` only; ``record_video`` or ``examples/watch_dream.py`` write videos).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from typing import Callable, Iterator, List, Optional, Sequence
+
+from sb3_dream.zoo import ZOO_ALGOS, hyperparams_path, register
+
+COMMANDS = ("train", "enjoy", "record_video")
+USAGE = f"""usage: sb3-dream-zoo {{{','.join(COMMANDS)}}} [rl-zoo3 flags]
+
+rl-zoo3 with the algorithms {', '.join(ZOO_ALGOS)} and the trial envs of dream_envs.
+Examples:
+  sb3-dream-zoo train --algo dream --env MetaBus-v0 -n 100000 --eval-freq 10000
+  sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 -n 400
+  sb3-dream-zoo train --algo rl2_dqn --env MetaBus-v0 --optimize --n-trials 20 -n 50000
+'<command> --help' lists the command's rl-zoo3 flags."""
+
+
+def _known_args(argv: Sequence[str]) -> argparse.Namespace:
+    """The few flags this wrapper looks at, read without consuming or validating anything."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--env", default="CartPole-v1")
+    parser.add_argument("-conf", "--conf-file", default=None)
+    parser.add_argument("--env-kwargs", nargs="+", default=None)
+    parser.add_argument("--eval-env-kwargs", nargs="+", default=None)
+    parser.add_argument("-f", "--folder", "--log-folder", dest="folder", default=None)
+    parser.add_argument("--no-render", action="store_true")
+    return parser.parse_known_args(list(argv))[0]
+
+
+def _env_class(env_id: str) -> Optional[type]:
+    """The class behind a registered env ID, or None if it cannot be told without making the env."""
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    try:
+        entry_point = gym.spec(env_id).entry_point
+        creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+    except Exception:  # unknown ID: rl-zoo3 reports it with a suggestion
+        return None
+    return creator if isinstance(creator, type) else None
+
+
+def _is_trial_env(env_id: str) -> bool:
+    from dream_envs import TrialEnv
+
+    cls = _env_class(env_id)
+    return cls is not None and issubclass(cls, TrialEnv)
+
+
+def train_args(argv: Sequence[str]) -> List[str]:
+    """``argv`` of ``train`` with this package's defaults put first (so the user's flags win)."""
+    known = _known_args(argv)
+    defaults: List[str] = []
+    if known.algo in ZOO_ALGOS and known.conf_file is None:
+        defaults += ["--conf-file", str(hyperparams_path(known.algo))]
+    if known.eval_env_kwargs is None and _is_trial_env(known.env):
+        env_kwargs = [kv for kv in (known.env_kwargs or []) if kv.split(":", 1)[0] != "split"]
+        defaults += ["--eval-env-kwargs", *env_kwargs, "split:'test'"]
+    return [*defaults, *argv]
+
+
+def enjoy_args(argv: Sequence[str], render_flag: bool = True) -> List[str]:
+    """``argv`` of ``enjoy``/``record_video`` with this package's defaults put first."""
+    known = _known_args(argv)
+    defaults: List[str] = []
+    if known.folder is None:
+        defaults += ["--folder", "logs"]
+    cls = _env_class(known.env)
+    if render_flag and not known.no_render and cls is not None:
+        if "human" not in getattr(cls, "metadata", {}).get("render_modes", []):
+            print(
+                f"sb3-dream-zoo: {known.env} has no 'human' render mode: adding --no-render "
+                "(record_video or examples/watch_dream.py write videos)"
+            )
+            defaults.append("--no-render")
+    return [*defaults, *argv]
+
+
+@contextlib.contextmanager
+def _argv(prog: str, args: Sequence[str]) -> Iterator[None]:
+    """rl-zoo3's scripts parse ``sys.argv`` themselves."""
+    saved = sys.argv
+    sys.argv = [prog, *args]
+    try:
+        yield
+    finally:
+        sys.argv = saved
+
+
+def main(argv: Optional[Sequence[str]] = None) -> None:
+    """Entry point of ``sb3-dream-zoo`` and ``python -m sb3_dream.zoo``."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(USAGE)
+        return
+    command, rest = args[0], args[1:]
+    if command not in COMMANDS:
+        raise SystemExit(f"sb3-dream-zoo: command={command!r} is not valid; accepted values: {', '.join(COMMANDS)}")
+    register()
+    script: Callable[[], None]
+    if command == "train":
+        from rl_zoo3.train import train as script
+
+        rest = train_args(rest)
+    elif command == "enjoy":
+        from rl_zoo3.enjoy import enjoy as script
+
+        rest = enjoy_args(rest)
+    else:
+        import runpy
+
+        # rl-zoo3's record_video is a script body under ``if __name__ == "__main__"``.
+        def script() -> None:
+            runpy.run_module("rl_zoo3.record_video", run_name="__main__", alter_sys=True)
+
+        rest = enjoy_args(rest, render_flag=False)
+    with _argv(f"sb3-dream-zoo {command}", rest):
+        script()
+
+
+if __name__ == "__main__":
+    main()
