@@ -108,7 +108,9 @@ class EnvSpec:
         parts = text.split(":")
         id_parts = [p for p in parts if "=" not in p]
         if not id_parts or not all(id_parts):
-            raise ValueError(f"envs entry {text!r} is not valid: expected ENV_ID[:key=value...], e.g. MetaBus-v0:variant=map")
+            raise ValueError(
+                f"envs entry {text!r} is not valid: expected ENV_ID[:key=value...], e.g. MetaBus-v0:variant=map"
+            )
         kwargs = parse_kwargs([p for p in parts if "=" in p], f"envs entry {text!r}")
         return cls(":".join(id_parts), tuple(sorted(kwargs.items())))
 
@@ -161,9 +163,13 @@ class RunConfig:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if self.preset not in PRESET_NAMES:
-            raise ValueError(f"preset={self.preset!r} is not valid; accepted values: {', '.join(map(repr, PRESET_NAMES))}")
+            raise ValueError(
+                f"preset={self.preset!r} is not valid; accepted values: {', '.join(map(repr, PRESET_NAMES))}"
+            )
         if not self.eval_splits or any(s not in SPLITS for s in self.eval_splits):
-            raise ValueError(f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}")
+            raise ValueError(
+                f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}"
+            )
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
@@ -306,7 +312,12 @@ def _run_worker(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any
     try:
         return run_one(run, config, out)
     except Exception as error:  # noqa: BLE001  (reported with its traceback, the experiment goes on)
-        return {"run": run, "status": "failed", "error": f"{type(error).__name__}: {error}", "traceback": traceback.format_exc()}
+        return {
+            "run": run,
+            "status": "failed",
+            "error": f"{type(error).__name__}: {error}",
+            "traceback": traceback.format_exc(),
+        }
 
 
 def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int]) -> List[Run]:
@@ -358,7 +369,10 @@ def run_experiments(
     for record in records:
         if record["status"] == "failed":
             run = record["run"]
-            print(f"FAILED {run.algo} {run.env.label} seed {run.seed}: {record['error']}\n{record['traceback']}", flush=True)
+            print(
+                f"FAILED {run.algo} {run.env.label} seed {run.seed}: {record['error']}\n{record['traceback']}",
+                flush=True,
+            )
     return records
 
 
@@ -399,7 +413,9 @@ def oracle_return(env: EnvSpec, split: str, n_trials: int, out: pathlib.Path) ->
         return float(json.loads(path.read_text())["mean"])
     try:
         made = gym.make(env.env_id, split=split, n_exec_episodes=env.n_exec_episodes, **env.eval_kwargs)
-        result = evaluate_meta(dream_envs.make_oracle(made), made, n_trials=n_trials, split=split, n_exec_episodes=env.n_exec_episodes)
+        result = evaluate_meta(
+            dream_envs.make_oracle(made), made, n_trials=n_trials, split=split, n_exec_episodes=env.n_exec_episodes
+        )
         made.close()
     except (AttributeError, NotImplementedError):  # an env without an oracle
         return None
@@ -436,7 +452,15 @@ def summarize(
 
 
 SUMMARY_COLUMNS = (
-    "env", "algo", "split", "seeds", "final_return_mean", "final_return_std", "env_steps", "wall_clock_s", "oracle_return"
+    "env",
+    "algo",
+    "split",
+    "seeds",
+    "final_return_mean",
+    "final_return_std",
+    "env_steps",
+    "wall_clock_s",
+    "oracle_return",
 )
 
 
@@ -456,7 +480,8 @@ def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
         optimal = f"{row['oracle_return']:.3f}" if "oracle_return" in row else "-"
         steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
         clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
-        lines.append(f"| {row['env']} | {row['algo']} | {row['split']} | {row['seeds']} | {ret} | {optimal} | {steps} | {clock} |")
+        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, optimal, steps, clock]
+        lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
     (out / "summary.md").write_text(table)
     return table
@@ -506,7 +531,7 @@ def plot_curves(
         ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize="small")
-    for ax in list(axes.flat)[len(panels):]:
+    for ax in list(axes.flat)[len(panels):]:  # fmt: skip
         ax.axis("off")
     fig.tight_layout()
     path = out / "curves.png"
@@ -518,7 +543,9 @@ def plot_curves(
 # ---------------------------------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python -m sb3_dream.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python -m sb3_dream.experiments",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--algos", nargs="+", default=["dream"], help=f"any of {', '.join(ALGOS)}")
     parser.add_argument("--envs", nargs="+", default=["MetaBus-v0"], help="env IDs, optionally ID:key=value...")

@@ -165,6 +165,17 @@ def test_save_load_round_trip(bus_model, tmp_path):
     assert resumed.num_timesteps >= steps + 100 and resumed._n_updates > bus_model._n_updates
 
 
+def test_resume_without_replay_buffer(bus_model, tmp_path):
+    # The trial counter is restored but the buffers start empty: updates wait for new data.
+    bus_model.save(tmp_path / "dream.zip")
+    resumed = DREAM.load(tmp_path / "dream.zip", env=make_vec_env("MetaBus-v0", n_envs=2))
+    assert len(resumed.replay_buffer.exploration) == 0 and resumed._n_trials > 0
+    resumed.train(gradient_steps=1, batch_size=8)  # nothing to sample yet: no update, no error
+    assert resumed._n_updates == bus_model._n_updates
+    resumed.learn(200, reset_num_timesteps=False)
+    assert len(resumed.replay_buffer.exploration) > 0 and resumed._n_updates > bus_model._n_updates
+
+
 def test_vectorised_training_logs_dream_scalars(tmp_path):
     from stable_baselines3.common.logger import configure
 

@@ -608,7 +608,9 @@ class DREAM(OffPolicyAlgorithm):
 
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
-        exploration_ready = self._n_trials >= max(1, self.exploration_learning_starts)
+        # Buffers are checked too: after `load` without `load_replay_buffer` the
+        # trial counter is restored but the buffers start empty.
+        exploration_ready = self._n_trials >= max(1, self.exploration_learning_starts) and len(self.replay_buffer.exploration) > 0
         execution_ready = self._n_trials >= max(1, self.execution_learning_starts) and len(self.replay_buffer.execution) > 0
         if not (exploration_ready or execution_ready) or gradient_steps <= 0:
             return

@@ -33,9 +33,7 @@ def sample_dream_params(trial: "optuna.Trial", n_actions: int, n_envs: int, addi
     }
 
 
-def sample_rl2_dqn_params(
-    trial: "optuna.Trial", n_actions: int, n_envs: int, additional_args: dict
-) -> Dict[str, Any]:
+def sample_rl2_dqn_params(trial: "optuna.Trial", n_actions: int, n_envs: int, additional_args: dict) -> Dict[str, Any]:
     """RL2DQN: learning rate, target syncs, epsilon schedule, learning starts and the TD loss."""
     return {
         "learning_rate": trial.suggest_float("learning_rate", 1e-5, 1e-3, log=True),

@@ -1,0 +1,123 @@
+"""The example scripts run end to end on tiny budgets, and the custom env example is a correct trial env."""
+
+from __future__ import annotations
+
+import importlib.util
+import pathlib
+import subprocess
+import sys
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+
+from dream_envs import play_trial
+from sb3_dream.evaluation import evaluate_meta
+
+EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
+TINY_DREAM = [
+    "exploration_learning_starts=5", "execution_learning_starts=5", "buffer_size=200", "execution_buffer_size=1000"
+]  # fmt: skip
+
+
+def load_example(name: str):
+    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def run_example(name: str, *args: str, cwd: pathlib.Path) -> str:
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / name), *args], cwd=cwd, capture_output=True, text=True, timeout=180
+    )
+    assert result.returncode == 0, f"{name} failed:\n{result.stdout}\n{result.stderr}"
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """examples/train_dream_metabus.py on a tiny budget: the saved model and the script's output."""
+    folder = tmp_path_factory.mktemp("train")
+    out = run_example(
+        "train_dream_metabus.py", "--variant", "map", "--steps", "200", "--eval-freq", "100", "--eval-trials", "3",
+        "--out", "model.zip", "--dream-kwargs", *TINY_DREAM, cwd=folder,
+    )  # fmt: skip
+    return folder / "model.zip", out
+
+
+def test_train_dream_metabus(trained):
+    model, out = trained
+    assert model.exists()
+    assert out.count("test: execution return") == 3  # evaluations at 0, 100 and 200 steps
+    assert "held-out: execution return" in out
+
+
+def test_watch_dream_writes_mp4_and_gif(trained, tmp_path):
+    model, _ = trained
+    out = run_example(
+        "watch_dream.py", "--model", str(model), "--env-kwargs", "variant='map'", "--n-exec-episodes", "2",
+        "--out", "trial.mp4", "--fps", "4", cwd=tmp_path,
+    )  # fmt: skip
+    n_frames = int(out.split("(")[1].split(" frames")[0])
+    video = cv2.VideoCapture(str(tmp_path / "trial.mp4"))
+    frames = []
+    while True:
+        ok, frame = video.read()
+        if not ok:
+            break
+        frames.append(frame)
+    assert len(frames) == n_frames > 3 * 4  # title cards for the exploration and both execution episodes
+    assert "execution returns" in out and out.count(", ") >= 1
+
+    out = run_example("watch_dream.py", "--oracle", "--out", "oracle.gif", "--problem-id", "5", cwd=tmp_path)
+    assert "execution returns +0.80" in out  # the oracle on the distracting bus
+    if hasattr(cv2, "imreadanimation"):
+        ok, animation = cv2.imreadanimation(str(tmp_path / "oracle.gif"))
+        assert ok and len(animation.frames) > 10 and animation.frames[0].shape[2] == 3
+    else:
+        assert (tmp_path / "oracle.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+
+
+def test_meta_test_compares_with_the_oracle(trained, tmp_path):
+    model, _ = trained
+    out = run_example(
+        "meta_test.py", "--model", str(model), "--env-kwargs", "variant='map'", "--trials", "4", cwd=tmp_path
+    )
+    assert "split=test (24 problems), 4 trials" in out
+    assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
+
+    meta_test = load_example("meta_test")
+    assert type(meta_test.load_model(str(model))).__name__ == "DREAM"
+    with zipfile.ZipFile(tmp_path / "dqn.zip", "w") as archive:
+        archive.writestr("data", '{"policy_class": {"__module__": "stable_baselines3.dqn.policies"}}')
+    with pytest.raises(ValueError, match="neither a DREAM nor an RL2DQN model"):
+        meta_test.load_model(str(tmp_path / "dqn.zip"))
+
+
+def test_custom_trial_env_script(tmp_path):
+    out = run_example("custom_trial_env.py", "--steps", "120", "--n-envs", "2", "--eval-trials", "10", cwd=tmp_path)
+    assert "oracle: execution return 1.000" in out and "DREAM: execution return" in out
+
+
+def test_custom_trial_env_is_a_working_imrl_problem():
+    module = load_example("custom_trial_env")
+    env = module.SignCorridorEnv(split="test", n_exec_episodes=2)
+    assert evaluate_meta(env.oracle(), env, n_trials=8, n_exec_episodes=2).mean == 1.0
+
+    class NoExploration(module.SignCorridorOracle):
+        """Stops exploring at once, then must walk to the sign in the first execution episode."""
+
+        def act(self, obs, info):
+            if int(obs["phase"]) == 0:
+                return module.STOP
+            return super().act(obs, info)
+
+    result = play_trial(env, NoExploration(), seed=0)
+    assert result["exploration_length"] == 1
+    np.testing.assert_allclose(result["execution_returns"], [0.7, 1.0])  # walks 3 cells once, then knows
+    obs, info = env.reset(options={"problem_id": 2})
+    assert "problem_id" not in obs and info["problem_id"] == 2 and obs["obs"].tolist() == [0, 0]
+    with pytest.raises(ValueError, match="length and n_codes"):
+        module.SignCorridorEnv(length=1)

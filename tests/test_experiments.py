@@ -1,0 +1,124 @@
+"""sb3_dream.experiments: env specs, validation, the models, and a tiny resumable parallel experiment."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from sb3_dream import experiments
+from sb3_dream.experiments import EnvSpec, Run, RunConfig, load_curve, make_model, parse_kwargs, plan_runs
+
+TINY_DREAM = [
+    "exploration_learning_starts=5", "execution_learning_starts=5", "buffer_size=200", "execution_buffer_size=1000"
+]  # fmt: skip
+
+
+def test_env_spec_parses_id_and_arguments():
+    spec = EnvSpec.parse("MetaBus-v0:variant=map:n_exec_episodes=2")
+    assert spec.env_id == "MetaBus-v0" and spec.env_kwargs == {"variant": "map", "n_exec_episodes": 2}
+    assert spec.n_exec_episodes == 2 and spec.eval_kwargs == {"variant": "map"}
+    assert spec.tag == "MetaBus-v0_n_exec_episodes-2_variant-map"
+    assert spec.label == "MetaBus-v0 (n_exec_episodes=2, variant=map)"
+    module_form = EnvSpec.parse("dream_envs:MetaBandit-v0:horizon=2:split='all'")
+    assert module_form.env_id == "dream_envs:MetaBandit-v0" and module_form.env_kwargs == {"horizon": 2, "split": "all"}
+    assert module_form.eval_kwargs == {"horizon": 2}  # split is the training split only
+    assert EnvSpec.parse("MetaBus-v0") == EnvSpec("MetaBus-v0")
+    for bad in ("variant=map", "MetaBus-v0::variant=map", ""):
+        with pytest.raises(ValueError, match="envs entry"):
+            EnvSpec.parse(bad)
+    with pytest.raises(ValueError, match="key=value"):
+        parse_kwargs(["buffer_size"], "--dream-kwargs")
+
+
+def test_bad_settings_are_rejected():
+    with pytest.raises(ValueError, match="preset='slow' is not valid"):
+        RunConfig(preset="slow")
+    with pytest.raises(ValueError, match="steps must be an integer >= 1"):
+        RunConfig(steps=0)
+    with pytest.raises(ValueError, match="eval_splits"):
+        RunConfig(eval_splits=("valid",))
+    with pytest.raises(ValueError, match="bottleneck"):
+        RunConfig(dream_kwargs=(("bottleneck", False),))
+    with pytest.raises(ValueError, match="algos=.*accepted values: 'dream', 'dream_no_bottleneck', 'rl2dqn'"):
+        plan_runs(["ppo"], [EnvSpec("MetaBus-v0")], [0])
+    with pytest.raises(ValueError, match="seeds"):
+        plan_runs(["dream"], [EnvSpec("MetaBus-v0")], [])
+    with pytest.raises(ValueError, match="jobs"):
+        experiments.run_experiments([], RunConfig(), "unused", jobs=0)
+    with pytest.raises(SystemExit, match="envs entry"):
+        experiments.main(["--envs", "=map"])
+
+
+def test_models_of_each_algorithm_and_preset():
+    fast = RunConfig(preset="fast", dream_kwargs=(("buffer_size", 50), ("execution_buffer_size", 100)))
+    dream = make_model("dream", "MetaBandit-v0", fast, seed=0)
+    ablation = make_model("dream_no_bottleneck", "MetaBandit-v0", fast, seed=0)
+    assert dream.bottleneck and not ablation.bottleneck
+    assert (dream.exploration_learning_starts, dream.eps_decay_steps, dream.buffer_size) == (100, 30_000, 50)
+    rl2 = make_model("rl2dqn", "MetaBandit-v0", RunConfig(preset="fast", rl2dqn_kwargs=(("buffer_size", 50),)), seed=0)
+    assert (rl2.learning_starts, rl2.exploration_steps, rl2.target_update_interval) == (4000, 60_000, 1000)
+    paper = make_model("rl2dqn", "MetaBandit-v0", RunConfig(), seed=0)
+    assert (paper.learning_starts, paper.exploration_steps) == (16_000, 500_000)
+    assert plan_runs(["dream", "rl2dqn"], [EnvSpec("A-v0"), EnvSpec("B-v0")], [0, 1])[:3] == [
+        Run("dream", EnvSpec("A-v0"), 0), Run("dream", EnvSpec("A-v0"), 1), Run("rl2dqn", EnvSpec("A-v0"), 0)
+    ]  # fmt: skip
+
+
+def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
+    out = tmp_path / "results"
+    argv = [
+        "--algos", "dream", "--envs", "MetaBandit-v0", "--seeds", "0", "1", "--steps", "120", "--eval-freq", "60",
+        "--eval-trials", "4", "--jobs", "2", "--out", str(out), "--dream-kwargs", *TINY_DREAM,
+    ]  # fmt: skip
+    records = experiments.main(argv)
+    assert sorted(r["status"] for r in records) == ["done", "done"]
+    first = capsys.readouterr().out
+    assert "running 2 run(s), 2 at a time" in first
+
+    folder = out / "MetaBandit-v0"
+    curves = [load_curve(folder / f"dream_seed{s}.csv") for s in (0, 1)]
+    for curve in curves:
+        np.testing.assert_array_equal(curve["env_steps"], [0, 60, 120])  # at the start, every 60 steps, the end
+        assert np.all((curve["mean"] >= 0) & (curve["mean"] <= 1)) and np.all(np.diff(curve["wall_clock_s"]) >= 0)
+    assert not list(folder.glob("*.partial"))
+    info = json.loads((folder / "dream_seed0.json").read_text())
+    assert info["settings"]["steps"] == 120 and info["final"]["test"]["env_steps"] == 120
+
+    with open(out / "summary.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    finals = [c["mean"][-1] for c in curves]
+    assert (row["algo"], row["split"], row["seeds"], row["env_steps"]) == ("dream", "test", "2", "120")
+    assert float(row["final_return_mean"]) == pytest.approx(np.mean(finals))
+    assert float(row["final_return_std"]) == pytest.approx(np.std(finals))
+    assert float(row["oracle_return"]) == 1.0  # the bandit's optimal scripted agent
+    assert "| MetaBandit-v0 | dream | test | 2 |" in first and (out / "summary.md").read_text() in first
+    pytest.importorskip("matplotlib")
+    assert (out / "curves.png").stat().st_size > 0
+
+    # Run again: both runs are finished, nothing is trained, nothing is rewritten.
+    stamps = {p: p.stat().st_mtime_ns for p in folder.glob("dream_seed*.csv")}
+    records = experiments.main(argv)
+    assert [r["status"] for r in records] == ["skipped", "skipped"]
+    assert {p: p.stat().st_mtime_ns for p in folder.glob("dream_seed*.csv")} == stamps
+    assert "running" not in capsys.readouterr().out
+
+
+def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path):
+    out = tmp_path / "results"
+    config = RunConfig(
+        steps=40, eval_freq=40, eval_trials=2, eval_splits=("test", "train"),
+        dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+    )  # fmt: skip
+    run = Run("dream_no_bottleneck", EnvSpec.parse("MetaBandit-v0:n_exec_episodes=2"), 3)
+    stale = run.curve_path(out, "test").with_name(run.curve_path(out, "test").name + ".partial")
+    stale.parent.mkdir(parents=True)
+    stale.write_text("env_steps,wall_clock_s,mean,ci,exploration_length\n999,0,0,0,0\n")  # a killed run's rows
+    assert not run.is_complete(out, config)
+    (record,) = experiments.run_experiments([run], config, out, jobs=1)
+    assert record["status"] == "done" and run.is_complete(out, config) and not stale.exists()
+    np.testing.assert_array_equal(load_curve(run.curve_path(out, "test"))["env_steps"], [0, 40])
+    assert run.curve_path(out, "train").name == "dream_no_bottleneck_seed3_train.csv"
+    assert load_curve(run.curve_path(out, "train"))["env_steps"].tolist() == [0, 40]

@@ -1,0 +1,153 @@
+"""sb3_dream.zoo: rl-zoo3's tables, the packaged hyperparameters, the CLI's defaults, train/enjoy/optimize."""
+
+from __future__ import annotations
+
+import inspect
+import subprocess
+import sys
+
+import pytest
+
+rl_zoo3 = pytest.importorskip("rl_zoo3")
+yaml = pytest.importorskip("yaml")
+optuna = pytest.importorskip("optuna")
+
+from sb3_dream.dream import DREAM  # noqa: E402
+from sb3_dream.rl2dqn import RL2DQN  # noqa: E402
+from sb3_dream.zoo import ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
+from sb3_dream.zoo.cli import enjoy_args, main, train_args  # noqa: E402
+from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS  # noqa: E402
+
+ENVS = ("MetaBus-v0", "MetaCook-v0", "SignNav3D-v0", "MetaBandit-v0")
+# Constructor arguments that are not hyperparameters (rl-zoo3 passes env, seed, verbose, device).
+NOT_HYPERPARAMETERS = {
+    "self",
+    "policy",
+    "env",
+    "stats_window_size",
+    "tensorboard_log",
+    "policy_kwargs",
+    "verbose",
+    "seed",
+    "device",
+    "_init_setup_model",
+    "replay_buffer_class",
+    "replay_buffer_kwargs",
+}
+# The paper's smaller buffers for the 3D env (Appendix B.4) and RL2DQN's image policy there.
+PAPER_3D = {"dream": {"buffer_size": 10_000, "execution_buffer_size": 60_000}, "rl2_dqn": {"buffer_size": 10_000}}
+POLICIES = {"dream": {}, "rl2_dqn": {"SignNav3D-v0": "CnnLstmPolicy"}}
+TINY = {
+    "dream": [
+        "exploration_learning_starts:5",
+        "execution_learning_starts:5",
+        "buffer_size:200",
+        "execution_buffer_size:1000",
+    ],
+    "rl2_dqn": ["learning_starts:50", "buffer_size:200"],
+}
+
+
+def test_register_fills_rl_zoo3_tables():
+    register()
+    register()  # idempotent
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
+
+    assert rl_zoo3.ALGOS["dream"] is DREAM and rl_zoo3.ALGOS["rl2_dqn"] is RL2DQN
+    assert rl_zoo3.ALGOS["ppo"].__name__ == "PPO"  # the zoo's own algorithms stay
+    for algo in ZOO_ALGOS:
+        assert HYPERPARAMS_SAMPLER[algo] is SAMPLERS[algo] and HYPERPARAMS_CONVERTER[algo] is CONVERTERS[algo]
+    import gymnasium as gym
+
+    for env_id in ENVS:
+        assert env_id in gym.registry
+
+
+@pytest.mark.parametrize("algo", ZOO_ALGOS)
+def test_packaged_hyperparameters_are_the_papers_defaults_for_every_env(algo):
+    cls = algorithms()[algo]
+    defaults = {
+        name: p.default
+        for name, p in inspect.signature(cls.__init__).parameters.items()
+        if name not in NOT_HYPERPARAMETERS
+    }
+    default_policy = inspect.signature(cls.__init__).parameters["policy"].default
+    config = yaml.safe_load(hyperparams_path(algo).read_text())
+    assert set(config) == set(ENVS)
+    for env_id, params in config.items():
+        assert params["n_envs"] == 1 and params["n_timesteps"] > 0
+        assert params["policy"] == POLICIES[algo].get(env_id, default_policy), env_id
+        hyper = {k: v for k, v in params.items() if k not in ("n_timesteps", "n_envs", "policy")}
+        assert set(hyper) == set(defaults), f"{algo} {env_id}: listed {sorted(hyper)} vs constructor {sorted(defaults)}"
+        expected = {**defaults, **(PAPER_3D[algo] if env_id == "SignNav3D-v0" else {})}
+        assert hyper == expected, env_id
+
+
+def test_cli_defaults_put_first_so_user_flags_win():
+    args = train_args(["--algo", "dream", "--env", "MetaBus-v0", "--env-kwargs", "variant:'map'", "split:'all'"])
+    assert args[:2] == ["--conf-file", str(hyperparams_path("dream"))]
+    # the zoo's evaluation runs on the held-out problems, with the same env arguments
+    assert args[2:5] == ["--eval-env-kwargs", "variant:'map'", "split:'test'"]
+    assert args[5:] == ["--algo", "dream", "--env", "MetaBus-v0", "--env-kwargs", "variant:'map'", "split:'all'"]
+    mine = ["--algo", "rl2_dqn", "--env", "MetaBus-v0", "--conf-file", "my.yml", "--eval-env-kwargs", "split:'train'"]
+    assert train_args(mine) == mine
+    assert train_args(["--algo", "ppo", "--env", "CartPole-v1"]) == ["--algo", "ppo", "--env", "CartPole-v1"]
+
+    args = enjoy_args(["--algo", "dream", "--env", "MetaBus-v0"])
+    assert args[:3] == ["--folder", "logs", "--no-render"]  # trial envs render rgb_array only
+    mine = ["--algo", "dream", "--env", "MetaBus-v0", "-f", "x", "--no-render"]
+    assert enjoy_args(mine) == mine
+
+
+def test_cli_rejects_unknown_commands():
+    with pytest.raises(SystemExit, match="command='fit' is not valid"):
+        main(["fit", "--algo", "dream"])
+
+
+@pytest.mark.parametrize("algo", ZOO_ALGOS)
+def test_samplers_give_valid_constructor_arguments(algo):
+    study = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0))
+    trial = study.ask()
+    kwargs = SAMPLERS[algo](trial, 0, 1, {"using_her_replay_buffer": False, "her_kwargs": {}})
+    assert CONVERTERS[algo](trial.params) == kwargs
+    small = {"buffer_size": 50, **({"execution_buffer_size": 100} if algo == "dream" else {})}
+    model = algorithms()[algo]("MetaBandit-v0", **{**kwargs, **small})
+    for key, value in kwargs.items():
+        assert getattr(model, key) == value
+
+
+@pytest.mark.parametrize("algo", ZOO_ALGOS)
+def test_zoo_train_then_enjoy(algo, tmp_path, capsys):
+    logs = tmp_path / "logs"
+    main(
+        ["train", "--algo", algo, "--env", "MetaBus-v0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "2",
+         "--seed", "0", "--num-threads", "1", "-f", str(logs), "-params", *TINY[algo]]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert str(hyperparams_path(algo)) in out and "eval_env_kwargs={'split': 'test'}" in out
+    run = logs / algo / "MetaBus-v0_1"
+    assert (run / "MetaBus-v0.zip").exists() and (run / "evaluations.npz").exists()
+    assert algorithms()[algo].load(run / "MetaBus-v0.zip").num_timesteps == 240
+
+    # enjoy in a fresh interpreter: the names resolve through ``python -m sb3_dream.zoo`` alone
+    enjoy = subprocess.run(
+        [sys.executable, "-m", "sb3_dream.zoo", "enjoy", "--algo", algo, "--env", "MetaBus-v0", "-f", str(logs),
+         "-n", "90", "--deterministic", "--num-threads", "1"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert enjoy.returncode == 0, enjoy.stderr
+    # whole trials (exploration + execution) ran through predict(state, episode_start)
+    assert "adding --no-render" in enjoy.stdout and "Mean reward:" in enjoy.stdout
+    assert enjoy.stdout.count("Episode Reward:") >= 2
+
+
+def test_zoo_optimize_runs_trials_with_the_dream_sampler(tmp_path, capsys):
+    logs = tmp_path / "logs"
+    main(
+        ["train", "--algo", "dream", "--env", "MetaBandit-v0", "-optimize", "--n-trials", "2", "-n", "100",
+         "--n-evaluations", "1", "--eval-episodes", "2", "--no-optim-plots", "--seed", "0", "--num-threads", "1",
+         "-f", str(logs), "-params", "buffer_size:100", "execution_buffer_size:200"]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert "Number of finished trials:  2" in out and "exploration_learning_starts" in out
+    assert list((logs / "dream").glob("report_MetaBandit-v0_2-trials-100-*.csv"))
