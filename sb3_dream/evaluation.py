@@ -171,6 +171,9 @@ def evaluate_meta(
     )
 
 
+CURVE_COLUMNS = ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")
+
+
 class MetaEvalCallback(BaseCallback):
     """Runs :func:`evaluate_meta` every ``eval_freq`` env steps during training and logs it.
 
@@ -206,6 +209,22 @@ class MetaEvalCallback(BaseCallback):
         self.results: List[Dict[str, float]] = []
         self._last_eval_step: Optional[int] = None
         self._train_start = time.perf_counter()
+        self._wall_clock_offset = 0.0
+
+    def resume(self, results: List[Dict[str, float]]) -> None:
+        """Continue the learning curve of an interrupted run (its rows up to the checkpoint it resumes
+        from): the CSV is rewritten with them, wall-clock goes on from the last one, and the start
+        of training evaluates only if the model has moved past the last row."""
+        self.results = [dict(row) for row in results]
+        if self.results:
+            self._last_eval_step = int(self.results[-1]["env_steps"])
+            self._wall_clock_offset = float(self.results[-1]["wall_clock_s"])
+        if self.csv_path:
+            os.makedirs(os.path.dirname(os.path.abspath(self.csv_path)), exist_ok=True)
+            with open(self.csv_path, "w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow(CURVE_COLUMNS)
+                writer.writerows([row[k] for k in CURVE_COLUMNS] for row in self.results)
 
     def _on_training_start(self) -> None:
         self._train_start = time.perf_counter()
@@ -213,8 +232,9 @@ class MetaEvalCallback(BaseCallback):
             os.makedirs(os.path.dirname(os.path.abspath(self.csv_path)), exist_ok=True)
             if not os.path.exists(self.csv_path):
                 with open(self.csv_path, "w", newline="") as f:
-                    csv.writer(f).writerow(["env_steps", "wall_clock_s", "mean", "ci", "exploration_length"])
-        self._evaluate()
+                    csv.writer(f).writerow(CURVE_COLUMNS)
+        if self._last_eval_step != self.num_timesteps:
+            self._evaluate()
 
     def _on_step(self) -> bool:
         if self.num_timesteps - (self._last_eval_step or 0) >= self.eval_freq:
@@ -226,7 +246,7 @@ class MetaEvalCallback(BaseCallback):
             self._evaluate()
 
     def _evaluate(self) -> None:
-        wall_clock = time.perf_counter() - self._train_start
+        wall_clock = self._wall_clock_offset + time.perf_counter() - self._train_start
         result = evaluate_meta(
             self.model,
             self.eval_env,
@@ -254,6 +274,6 @@ class MetaEvalCallback(BaseCallback):
         self.logger.dump(self.num_timesteps)
         if self.csv_path:
             with open(self.csv_path, "a", newline="") as f:
-                csv.writer(f).writerow([row[k] for k in ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")])
+                csv.writer(f).writerow([row[k] for k in CURVE_COLUMNS])
         if self.verbose:
             print(f"[{self.num_timesteps} steps, {wall_clock:.0f}s] {self.split}: {result.summary()}")

@@ -8,7 +8,13 @@ on the held-out split every ``--eval-freq`` steps (``--eval-trials`` meta-test t
 
 **Resumable.** A run writes ``<name>.csv.partial`` and renames it to ``<name>.csv`` only when it
 is complete, so a finished run is skipped when the command is run again (whatever the other
-options: use ``--force`` or a new ``--out`` to redo it) and an interrupted one starts over.
+options: use ``--force`` or a new ``--out`` to redo it). An interrupted run starts over, unless
+``--checkpoint-freq N`` is given: then, right after an evaluation and at least every N env steps,
+the run saves its model (with optimizer states and counters) and replay buffers under
+``<env>/checkpoints/``, and the same command later goes on from the last checkpoint, keeping the
+learning curve and wall-clock so far (the envs start fresh trials; nothing else is lost). This is
+how budgets longer than one sitting (the paper's millions of steps) are run on a laptop.
+Checkpoints are deleted once the run is complete.
 
 **Outputs** under ``--out``::
 
@@ -17,6 +23,7 @@ options: use ``--force`` or a new ``--out`` to redo it) and an interrupted one s
     <env>/<algo>_seed<k>.json         the run's settings and final numbers
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
+    <env>/checkpoints/                an unfinished run's last checkpoint, with --checkpoint-freq
     summary.csv, summary.md           final return mean +- std over seeds, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
                                       (and split), like the paper's Figures 5 and 6
@@ -62,7 +69,7 @@ from dream_envs.core import SPLITS
 
 ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
 PRESET_NAMES = ("paper", "fast")
-CURVE_COLUMNS = ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")
+from sb3_dream.evaluation import CURVE_COLUMNS
 
 RL2DQN_PRESETS: Dict[str, Dict[str, Any]] = {
     "paper": {},
@@ -154,6 +161,7 @@ class RunConfig:
     threads: int = 1
     device: str = "auto"
     save_models: bool = False
+    checkpoint_freq: int = 0
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
 
@@ -170,13 +178,15 @@ class RunConfig:
             raise ValueError(
                 f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}"
             )
+        if isinstance(self.checkpoint_freq, bool) or not isinstance(self.checkpoint_freq, int) or self.checkpoint_freq < 0:
+            raise ValueError(f"checkpoint_freq must be an integer >= 0 (0: no checkpoints), got {self.checkpoint_freq!r}")
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        for key in ("threads", "device", "save_models", "dream_kwargs", "rl2dqn_kwargs"):
+        for key in ("threads", "device", "save_models", "checkpoint_freq", "dream_kwargs", "rl2dqn_kwargs"):
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
         data["eval_splits"] = list(self.eval_splits)
@@ -207,6 +217,10 @@ class Run:
 
     def model_path(self, out: pathlib.Path) -> pathlib.Path:
         return self.folder(out) / f"{self.name}.zip"
+
+    def checkpoint_path(self, out: pathlib.Path) -> pathlib.Path:
+        """The JSON that names a run's last checkpoint (written last, so it is never half made)."""
+        return self.folder(out) / "checkpoints" / f"{self.name}.json"
 
     def is_complete(self, out: pathlib.Path, config: RunConfig) -> bool:
         return all(self.curve_path(out, split).exists() for split in config.eval_splits)
@@ -249,8 +263,101 @@ def _partial(path: pathlib.Path) -> pathlib.Path:
     return path.with_name(path.name + ".partial")
 
 
+def _algorithm_class(algo: str) -> type:
+    if algo == "rl2dqn":
+        from sb3_dream.rl2dqn import RL2DQN
+
+        return RL2DQN
+    from sb3_dream.dream import DREAM
+
+    return DREAM
+
+
+class Checkpointer:
+    """Saves a run's model, replay buffers and learning curve right after its evaluations, at
+    least ``freq`` env steps apart (a callback placed after the evaluation callbacks).
+
+    A checkpoint is ``<name>.<steps>.zip`` (model), ``<name>.<steps>.pkl`` (replay buffers) and
+    the JSON :meth:`Run.checkpoint_path`, replaced atomically last, that names them; older files
+    are removed only after it. An interruption at any moment leaves the previous checkpoint usable.
+    """
+
+    def __init__(self, run: Run, config: RunConfig, out: pathlib.Path) -> None:
+        self.run, self.config, self.folder = run, config, run.checkpoint_path(out).parent
+        self.path = run.checkpoint_path(out)
+
+    def load(self) -> Optional[Dict[str, Any]]:
+        """The last checkpoint's record, or None (none, or made with other settings)."""
+        try:
+            record = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None
+        # Any settings but the budget: an unfinished run may be given more steps.
+        wanted = json.loads(json.dumps(self.config.settings(self.run.algo), default=str))
+        recorded = dict(record.get("settings", {}))
+        recorded.pop("steps", None), wanted.pop("steps", None)
+        if recorded != wanted or not (self.folder / record["model"]).exists():
+            print(f"warning: ignoring {self.path}: made with other settings or incomplete", flush=True)
+            return None
+        return record
+
+    def save(self, model: Any, curves: Dict[str, List[Dict[str, float]]], train_seconds: float) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        stem = f"{self.run.name}.{model.num_timesteps}"
+        model.save(self.folder / f"{stem}.partial.zip")
+        os.replace(self.folder / f"{stem}.partial.zip", self.folder / f"{stem}.zip")
+        model.save_replay_buffer(self.folder / f"{stem}.partial.pkl")
+        os.replace(self.folder / f"{stem}.partial.pkl", self.folder / f"{stem}.pkl")
+        record = {
+            "env_steps": model.num_timesteps,
+            "model": f"{stem}.zip",
+            "replay_buffer": f"{stem}.pkl",
+            "train_seconds": train_seconds,
+            "curves": curves,
+            "settings": self.config.settings(self.run.algo),
+        }
+        tmp = self.path.with_suffix(".json.partial")
+        tmp.write_text(json.dumps(record, default=str))
+        os.replace(tmp, self.path)
+        self.remove(keep=stem)
+
+    def remove(self, keep: Optional[str] = None) -> None:
+        """Delete this run's checkpoint files (all, or all but the ``keep`` stem's)."""
+        for path in self.folder.glob(f"{self.run.name}.*"):
+            if keep is None or not path.name.startswith(keep + ".") and path != self.path:
+                path.unlink(missing_ok=True)
+        if keep is None:
+            self.path.unlink(missing_ok=True)
+
+
+def _make_checkpoint_callback(checkpointer: Checkpointer, evaluations: Sequence[Any], seconds_before: float) -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class CheckpointAfterEvaluation(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self._last = None
+
+        def _on_training_start(self) -> None:
+            self._start = time.perf_counter()
+            self._last = self.num_timesteps
+
+        def _on_step(self) -> bool:
+            evaluated = all(cb._last_eval_step == self.num_timesteps for cb in evaluations)
+            if evaluated and self.num_timesteps - self._last >= checkpointer.config.checkpoint_freq:
+                seconds = seconds_before + time.perf_counter() - self._start
+                checkpointer.save(self.model, {cb.split: cb.results for cb in evaluations}, seconds)
+                self._last = self.num_timesteps
+            return True
+
+    return CheckpointAfterEvaluation()
+
+
 def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
-    """Train and evaluate one run; its files appear under their final names only once complete."""
+    """Train and evaluate one run; its files appear under their final names only once complete.
+
+    With ``config.checkpoint_freq`` it goes on from the run's last checkpoint, if there is one.
+    """
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList
     from stable_baselines3.common.env_util import make_vec_env
@@ -259,12 +366,21 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     folder = run.folder(out)
     folder.mkdir(parents=True, exist_ok=True)
     partial = {split: _partial(run.curve_path(out, split)) for split in config.eval_splits}
-    for path in partial.values():
-        path.unlink(missing_ok=True)  # an interrupted run starts over
+    checkpointer = Checkpointer(run, config, out)
+    resume = checkpointer.load() if config.checkpoint_freq else None
+    if resume is None:
+        for path in partial.values():
+            path.unlink(missing_ok=True)  # an interrupted run starts over
 
     tag = f"{run.algo} {run.env.label} seed {run.seed}"
     env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
-    model = make_model(run.algo, env, config, run.seed)
+    if resume is None:
+        model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
+    else:
+        model = _algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
+        model.load_replay_buffer(checkpointer.folder / resume["replay_buffer"])
+        seconds_before = float(resume["train_seconds"])
+        print(f"[{tag}] resuming from its checkpoint at {model.num_timesteps} env steps", flush=True)
     callbacks = [
         _make_progress_callback(
             tag if len(config.eval_splits) == 1 else f"{tag} {split}",
@@ -279,9 +395,19 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         )
         for split in config.eval_splits
     ]
+    if resume is not None:
+        for callback in callbacks:
+            callback.resume(resume["curves"][callback.split])
+    callback_list = list(callbacks)
+    if config.checkpoint_freq:
+        callback_list.append(_make_checkpoint_callback(checkpointer, callbacks, seconds_before))
     start = time.perf_counter()
-    model.learn(config.steps, callback=CallbackList(callbacks))
-    seconds = time.perf_counter() - start
+    model.learn(
+        max(config.steps - model.num_timesteps, 0) if resume else config.steps,
+        callback=CallbackList(callback_list),
+        reset_num_timesteps=resume is None,
+    )
+    seconds = seconds_before + time.perf_counter() - start
     env.close()
 
     if config.save_models:
@@ -296,6 +422,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         "seed": run.seed,
         "settings": config.settings(run.algo),
         "train_seconds": seconds,
+        "resumed_from": None if resume is None else resume["env_steps"],
         "final": finals,
     }
     tmp_info = run.info_path(out).with_suffix(".json.partial")
@@ -304,6 +431,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     # The held-out curve (the completion mark) is renamed last.
     for split in sorted(config.eval_splits, key=lambda s: s == "test"):
         os.replace(partial[split], run.curve_path(out, split))
+    checkpointer.remove()
     return {"run": run, "status": "done", "seconds": seconds, "final": finals}
 
 
@@ -562,6 +690,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--save-models", action="store_true", help="save each trained model next to its curve")
+    parser.add_argument(
+        "--checkpoint-freq",
+        type=int,
+        default=0,
+        help="save model and replay buffers at least every N env steps (at evaluations) and resume from them; 0: off",
+    )
     parser.add_argument("--out", default="results/experiments")
     parser.add_argument("--force", action="store_true", help="redo finished runs")
     parser.add_argument("--no-plot", action="store_true", help="skip the figure")
@@ -583,6 +717,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             threads=args.threads,
             device=args.device,
             save_models=args.save_models,
+            checkpoint_freq=args.checkpoint_freq,
             dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
             rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
         )

@@ -122,3 +122,38 @@ def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path
     np.testing.assert_array_equal(load_curve(run.curve_path(out, "test"))["env_steps"], [0, 40])
     assert run.curve_path(out, "train").name == "dream_no_bottleneck_seed3_train.csv"
     assert load_curve(run.curve_path(out, "train"))["env_steps"].tolist() == [0, 40]
+
+
+@pytest.mark.parametrize("algo", ["dream", "rl2dqn"])
+def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch, algo):
+    out = tmp_path / "results"
+    config = RunConfig(
+        steps=400, eval_freq=100, eval_trials=2, checkpoint_freq=200,
+        dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+        rl2dqn_kwargs=(("buffer_size", 50), ("learning_starts", 50)),
+    )  # fmt: skip
+    run = Run(algo, EnvSpec.parse("MetaBus-v0:variant=map"), 0)
+    from sb3_dream.evaluation import MetaEvalCallback
+
+    evaluate = MetaEvalCallback._evaluate
+
+    def interrupted(self):
+        if self.num_timesteps >= 300:
+            raise KeyboardInterrupt  # killed between the checkpoint at 200 and the next one
+        evaluate(self)
+
+    monkeypatch.setattr(MetaEvalCallback, "_evaluate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        experiments.run_one(run, config, out)
+    checkpoint = json.loads(run.checkpoint_path(out).read_text())
+    assert checkpoint["env_steps"] == 200 and not run.is_complete(out, config)
+    assert sorted(p.suffix for p in run.checkpoint_path(out).parent.iterdir()) == [".json", ".pkl", ".zip"]
+
+    monkeypatch.setattr(MetaEvalCallback, "_evaluate", evaluate)
+    record = experiments.run_one(run, config, out)
+    curve = load_curve(run.curve_path(out))
+    assert curve["env_steps"].tolist() == [0, 100, 200, 300, 400]  # kept rows, then the new ones
+    assert np.all(np.diff(curve["wall_clock_s"]) > 0)
+    info = json.loads(run.info_path(out).read_text())
+    assert info["resumed_from"] == 200 and record["seconds"] >= checkpoint["train_seconds"]
+    assert not run.checkpoint_path(out).parent.exists() or not any(run.checkpoint_path(out).parent.iterdir())
