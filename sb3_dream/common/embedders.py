@@ -35,6 +35,15 @@ def _flatten_batch(x: th.Tensor, event_shape: Sequence[int]) -> tuple[th.Tensor,
     return x.reshape(-1, *event_shape), batch_shape
 
 
+def relu_mlp(in_dim: int, hidden_dims: Sequence[int]) -> tuple[nn.Sequential, int]:
+    """Linear + ReLU layers of ``hidden_dims`` after ``in_dim`` inputs, and their output size."""
+    layers: list[nn.Module] = []
+    for out_dim in hidden_dims:
+        layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
+        in_dim = out_dim
+    return nn.Sequential(*layers), in_dim
+
+
 class MultiDiscreteEmbedder(nn.Module):
     """Per-dimension embeddings (``per_dim`` units each), concatenated, then a ReLU MLP.
 
@@ -54,13 +63,7 @@ class MultiDiscreteEmbedder(nn.Module):
         offsets = np.concatenate([[0], np.cumsum(flat)[:-1]])
         self.register_buffer("offsets", th.as_tensor(offsets, dtype=th.long), persistent=False)
         self.embedding = nn.Embedding(int(flat.sum()), per_dim)
-        layers: list[nn.Module] = []
-        in_dim = per_dim * len(flat)
-        for out_dim in hidden_dims:
-            layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
-            in_dim = out_dim
-        self.mlp = nn.Sequential(*layers)
-        self.embed_dim = in_dim
+        self.mlp, self.embed_dim = relu_mlp(per_dim * len(flat), hidden_dims)
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         flat, batch_shape = _flatten_batch(x, self.event_shape)
@@ -102,13 +105,7 @@ class BoxMLPEmbedder(nn.Module):
     def __init__(self, shape: Sequence[int], hidden_dims: Sequence[int] = (256, 64)) -> None:
         super().__init__()
         self.event_shape = tuple(shape)
-        layers: list[nn.Module] = []
-        in_dim = int(np.prod(shape)) if len(shape) else 1
-        for out_dim in hidden_dims:
-            layers += [nn.Linear(in_dim, out_dim), nn.ReLU()]
-            in_dim = out_dim
-        self.mlp = nn.Sequential(*layers)
-        self.embed_dim = in_dim
+        self.mlp, self.embed_dim = relu_mlp(int(np.prod(shape)) if len(shape) else 1, hidden_dims)
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         flat, batch_shape = _flatten_batch(x.float(), self.event_shape)
