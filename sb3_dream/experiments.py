@@ -226,20 +226,29 @@ class Run:
         return all(self.curve_path(out, split).exists() for split in config.eval_splits)
 
 
-def make_model(algo: str, env: Any, config: RunConfig, seed: int) -> Any:
-    """The model of ``algo`` on ``env`` with the preset and the per-algorithm overrides of ``config``."""
+def algorithm_class(algo: str) -> type:
+    """The class that trains ``algo``: DREAM for both DREAM variants, RL2DQN for rl2dqn."""
     if algo in ("dream", "dream_no_bottleneck"):
         from sb3_dream.dream import DREAM
-        from sb3_dream.dream.presets import PRESETS
 
-        kwargs = {**PRESETS[config.preset], **dict(config.dream_kwargs)}
-        return DREAM(env, seed=seed, device=config.device, bottleneck=algo == "dream", **kwargs)
+        return DREAM
     if algo == "rl2dqn":
         from sb3_dream.rl2dqn import RL2DQN
 
-        kwargs = {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
-        return RL2DQN(env, seed=seed, device=config.device, **kwargs)
+        return RL2DQN
     raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ALGOS))}")
+
+
+def make_model(algo: str, env: Any, config: RunConfig, seed: int) -> Any:
+    """The model of ``algo`` on ``env`` with the preset and the per-algorithm overrides of ``config``."""
+    cls = algorithm_class(algo)
+    if algo == "rl2dqn":
+        kwargs = {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
+        return cls(env, seed=seed, device=config.device, **kwargs)
+    from sb3_dream.dream.presets import PRESETS
+
+    kwargs = {**PRESETS[config.preset], **dict(config.dream_kwargs)}
+    return cls(env, seed=seed, device=config.device, bottleneck=algo == "dream", **kwargs)
 
 
 def _make_progress_callback(tag: str, **kwargs: Any) -> Any:
@@ -263,16 +272,6 @@ def _partial(path: pathlib.Path) -> pathlib.Path:
     return path.with_name(path.name + ".partial")
 
 
-def _algorithm_class(algo: str) -> type:
-    if algo == "rl2dqn":
-        from sb3_dream.rl2dqn import RL2DQN
-
-        return RL2DQN
-    from sb3_dream.dream import DREAM
-
-    return DREAM
-
-
 class Checkpointer:
     """Saves a run's model, replay buffers and learning curve right after its evaluations, at
     least ``freq`` env steps apart (a callback placed after the evaluation callbacks).
@@ -283,8 +282,8 @@ class Checkpointer:
     """
 
     def __init__(self, run: Run, config: RunConfig, out: pathlib.Path) -> None:
-        self.run, self.config, self.folder = run, config, run.checkpoint_path(out).parent
-        self.path = run.checkpoint_path(out)
+        self.run, self.config, self.path = run, config, run.checkpoint_path(out)
+        self.folder = self.path.parent
 
     def load(self) -> Optional[Dict[str, Any]]:
         """The last checkpoint's record, or None (none, or made with other settings)."""
@@ -343,7 +342,7 @@ def _make_checkpoint_callback(checkpointer: Checkpointer, evaluations: Sequence[
             self._last = self.num_timesteps
 
         def _on_step(self) -> bool:
-            evaluated = all(cb._last_eval_step == self.num_timesteps for cb in evaluations)
+            evaluated = all(cb.results and cb.results[-1]["env_steps"] == self.num_timesteps for cb in evaluations)
             if evaluated and self.num_timesteps - self._last >= checkpointer.config.checkpoint_freq:
                 seconds = seconds_before + time.perf_counter() - self._start
                 checkpointer.save(self.model, {cb.split: cb.results for cb in evaluations}, seconds)
@@ -377,7 +376,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     if resume is None:
         model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
     else:
-        model = _algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
+        model = algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
         model.load_replay_buffer(checkpointer.folder / resume["replay_buffer"])
         seconds_before = float(resume["train_seconds"])
         print(f"[{tag}] resuming from its checkpoint at {model.num_timesteps} env steps", flush=True)
