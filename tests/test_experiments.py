@@ -42,6 +42,10 @@ def test_bad_settings_are_rejected():
         RunConfig(eval_splits=("valid",))
     with pytest.raises(ValueError, match="bottleneck"):
         RunConfig(dream_kwargs=(("bottleneck", False),))
+    with pytest.raises(ValueError, match="checkpoint_freq must be an integer >= 0"):
+        RunConfig(checkpoint_freq=-1)
+    with pytest.raises(ValueError, match="algo='ppo' is not valid"):
+        experiments.algorithm_class("ppo")
     with pytest.raises(ValueError, match="algos=.*accepted values: 'dream', 'dream_no_bottleneck', 'rl2dqn'"):
         plan_runs(["ppo"], [EnvSpec("MetaBus-v0")], [0])
     with pytest.raises(ValueError, match="seeds"):
