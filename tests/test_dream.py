@@ -244,3 +244,26 @@ def test_dream_learns_the_bandit_that_needs_exploration():
     model.learn(8000)
     result = evaluate_meta(model, "MetaBandit-v0", n_trials=100)
     assert result.mean >= 0.9
+
+
+def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):
+    from sb3_dream.dream import diagnose
+
+    ids = [3, 40, 3, 100]
+    d = diagnose(bus_model, "MetaBus-v0", n_trials=4, seed=7, problem_ids=ids)
+    # return_g is the ordinary meta-test of these trials
+    assert d.return_g == pytest.approx(evaluate_meta(bus_model, "MetaBus-v0", n_trials=4, seed=7, problem_ids=ids).mean)
+    assert d.decoder_error > 0 and d.n_trials == 4 and 1 <= d.exploration_length <= 20
+    split_ids = gym.make("MetaBus-v0", split="test").unwrapped.problem_ids("test")
+    f = bus_model._encode(split_ids, noisy=False)
+    brute = ((f[:, None] - f[None]) ** 2).sum(-1)
+    assert d.f_spread == pytest.approx(brute.sum() / (len(f) * (len(f) - 1)), rel=1e-4)
+    assert d.f_norm_sq == pytest.approx(float((bus_model._encode(np.array(ids), noisy=False) ** 2).sum(1).mean()), rel=1e-5)
+
+    # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
+    monkeypatch.setattr(bus_model, "_decode", lambda state, idx, n: bus_model._encode(np.full(len(idx), 40), noisy=False))
+    perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
+    assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
+    assert perfect.return_g == perfect.return_f
+    with pytest.raises(TypeError, match="model"):
+        diagnose("not a model", "MetaBus-v0")

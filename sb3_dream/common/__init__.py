@@ -1,4 +1,5 @@
-"""Parts shared by the recurrent algorithms (RL2DQN, DREAM): embedders, sequence replay, Q-learning helpers."""
+"""Parts shared by the recurrent algorithms (RL2DQN, DREAM): the learn loop, embedders, sequence replay,
+Q-learning helpers."""
 
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.embedders import (
@@ -11,6 +12,7 @@ from sb3_dream.common.embedders import (
     check_trial_observation_space,
     make_state_embedder,
 )
+from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import (
     DuelingHead,
     LinearEpsilonSchedule,
@@ -35,6 +37,7 @@ __all__ = [
     "SequenceReplayBuffer",
     "SequenceReplayBufferSamples",
     "TrialInputEmbedder",
+    "TrialOffPolicyAlgorithm",
     "check_trial_observation_space",
     "double_dqn_targets",
     "final_obs_entry",

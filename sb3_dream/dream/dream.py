@@ -41,13 +41,13 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
 from dream_envs import EXECUTION, EXPLORATION, ScriptedAgent
+from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
 from sb3_dream.dream.policies import DreamPolicy
@@ -90,7 +90,7 @@ class TrialState:
         return cls(hidden, *(np.array(a, copy=True) for a in rest))
 
 
-class DREAM(OffPolicyAlgorithm):
+class DREAM(TrialOffPolicyAlgorithm):
     """DREAM for trial envs (:mod:`dream_envs`), following the paper's Algorithm 1 and Appendix B.
 
     Defaults are the paper's (Table 1 and Appendix B.4); where the paper is silent, the authors'
@@ -589,22 +589,13 @@ class DREAM(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfDREAM:
         """Train for ``total_timesteps`` env steps (``log_interval`` counts trials)."""
-        total_timesteps, callback = self._setup_learn(
-            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
-        )
-        callback.on_training_start(locals(), globals())
-        assert self.env is not None
-        while self.num_timesteps < total_timesteps:
-            rollout = self.collect_rollouts(
-                self.env, callback, self.train_freq, self.replay_buffer, log_interval=log_interval  # type: ignore
-            )
-            if not rollout.continue_training:
-                break
-            n_updates = self._steps_since_update // self.train_freq_steps
-            self._steps_since_update -= n_updates * self.train_freq_steps
-            self.train(gradient_steps=n_updates, batch_size=self.batch_size)
-        callback.on_training_end()
-        return self
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    def _updates_due(self, rollout: RolloutReturn) -> int:
+        """One update of each part per ``train_freq`` env steps, summed over envs (Algorithm 1)."""
+        n_updates = self._steps_since_update // self.train_freq_steps
+        self._steps_since_update -= n_updates * self.train_freq_steps
+        return n_updates
 
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
@@ -771,11 +762,16 @@ class DreamTrialAgent(ScriptedAgent):
     def reset(self) -> None:
         self.state = self.model.new_trial_state(1)
 
+    def _explored(self) -> None:
+        """Called once the exploration episode is over and ``self.state.z`` holds g(tau^exp)
+        (a hook for :func:`sb3_dream.dream.diagnostics.diagnose`)."""
+
     def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
         model = self.model
         model.policy.set_training_mode(False)
         batch, _ = model._batch_observation(obs)
         if info.get("episode_end") and info.get("episode_phase") == EXPLORATION:
             model.end_exploration(self.state, np.array([0]), np.asarray(info["final_obs"])[None])
+            self._explored()
         eps = (0.0, 0.0) if self.deterministic else (model.exploration_epsilon, model.execution_epsilon)
         return int(model._act(batch, self.state, *eps)[0])

@@ -9,15 +9,15 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve in gym.make)
 from dream_envs.core import ScriptedAgent
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
+from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
 from sb3_dream.common.wrappers import FinalObsWrapper, final_obs_entry
 from sb3_dream.rl2dqn.policies import CnnLstmPolicy, MultiInputLstmPolicy, RL2DQNPolicy, RL2QNetwork
@@ -58,7 +58,7 @@ def recurrent_double_dqn_loss(
     return loss, q_mean
 
 
-class RL2DQN(OffPolicyAlgorithm):
+class RL2DQN(TrialOffPolicyAlgorithm):
     """RL² as a recurrent dueling double DQN with trial-structured sequence replay.
 
     The paper's RL² baseline (Appendix B.3, B.4): per-step embeddings of the state, the previous
@@ -387,32 +387,16 @@ class RL2DQN(OffPolicyAlgorithm):
         progress_bar: bool = False,
     ) -> SelfRL2DQN:
         """Train for ``total_timesteps`` env steps (over all envs); ``log_interval`` counts trials."""
-        total_timesteps, callback = self._setup_learn(
-            total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar
-        )
-        callback.on_training_start(locals(), globals())
-        assert self.env is not None and isinstance(self.train_freq, TrainFreq)
-        while self.num_timesteps < total_timesteps:
-            rollout = self.collect_rollouts(
-                self.env,
-                train_freq=self.train_freq,
-                action_noise=None,
-                callback=callback,
-                learning_starts=self.learning_starts,
-                replay_buffer=self.replay_buffer,
-                log_interval=log_interval,
-            )
-            if not rollout.continue_training:
-                break
-            if self.num_timesteps > self.learning_starts and self.replay_buffer.size() > 0:
-                # gradient_steps updates per train_freq env steps, whatever the number of envs
-                self._update_budget += rollout.episode_timesteps * self.gradient_steps / self.train_every
-                n_updates = int(self._update_budget)
-                if n_updates > 0:
-                    self._update_budget -= n_updates
-                    self.train(gradient_steps=n_updates, batch_size=self.batch_size)
-        callback.on_training_end()
-        return self
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+
+    def _updates_due(self, rollout: RolloutReturn) -> int:
+        """``gradient_steps`` updates per ``train_every`` env steps, whatever the number of envs."""
+        if self.num_timesteps <= self.learning_starts or self.replay_buffer.size() == 0:
+            return 0
+        self._update_budget += rollout.episode_timesteps * self.gradient_steps / self.train_every
+        n_updates = int(self._update_budget)
+        self._update_budget -= n_updates
+        return n_updates
 
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         self.policy.set_training_mode(True)

@@ -1,0 +1,109 @@
+"""Where a DREAM model stands: is its return limited by exploration (and the decoder) or by execution?
+
+DREAM factorises meta-test into two parts, and each can be checked on its own with the privileged
+problem ID (never available at meta-test, so this is a diagnostic, not an evaluation):
+
+* the **execution policy** alone: run it with z = f(T), the encoder's code of the true problem,
+  instead of the decoder's g(tau^exp). Its return is what a perfect explorer and decoder would give;
+* **exploration and the decoder**: how far g(tau^exp) lands from f(T) (``decoder_error``), next to
+  how far apart the codes of different problems are (``f_spread``).
+
+``return_f`` close to ``return_g`` and both low: execution is what limits the model.
+``return_f`` well above ``return_g``: exploration (or the decoder) is. Both runs use the same
+problems, instructions and env seeds, and greedy policies, so the exploration trajectories are the
+same in both.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any, Dict, List, Optional, Sequence, Union
+
+import gymnasium as gym
+import numpy as np
+
+from dream_envs.core import SPLITS, check_choice, check_positive_int
+from sb3_dream.dream.dream import DREAM, DreamTrialAgent
+from sb3_dream.evaluation import _make_env, evaluate_meta
+
+
+@dataclass
+class DreamDiagnosis:
+    """Mean results over ``n_trials`` trials (execution returns averaged over execution episodes)."""
+
+    return_g: float  # meta-test: z = g(tau^exp)
+    return_f: float  # the execution policy given z = f(T) (privileged)
+    decoder_error: float  # ||g(tau^exp) - f(T)||^2
+    f_norm_sq: float  # ||f(T)||^2
+    f_spread: float  # ||f(T) - f(T')||^2 over pairs of the split's problems
+    exploration_length: float
+    n_trials: int
+
+    def as_dict(self) -> Dict[str, Any]:
+        return asdict(self)
+
+
+class _DiagnosticAgent(DreamTrialAgent):
+    """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source="f"``, acts on f(T)."""
+
+    def __init__(self, model: DREAM, problem_ids: np.ndarray, z_source: str) -> None:
+        self.problem_ids, self.z_source = problem_ids, z_source
+        self.f = model._encode(problem_ids, noisy=False)  # f(T) of trial k's problem
+        self.g: List[np.ndarray] = []
+        super().__init__(model, deterministic=True)
+
+    def _explored(self) -> None:
+        k = len(self.g)  # one exploration per trial, trials in order
+        self.g.append(self.state.z[0].copy())
+        if self.z_source == "f":
+            self.state.z[0] = self.f[k]
+
+
+def diagnose(
+    model: DREAM,
+    env: Union[str, gym.Env],
+    n_trials: int = 100,
+    split: str = "test",
+    seed: int = 0,
+    env_kwargs: Optional[Dict[str, Any]] = None,
+    problem_ids: Optional[Sequence[int]] = None,
+) -> DreamDiagnosis:
+    """Meta-test ``model`` twice on the same ``n_trials`` trials of ``split``: with z = g(tau^exp)
+    and with z = f(T); see the module docstring for how to read the result.
+
+    :param problem_ids: trial k's problem is ``problem_ids[k % len(problem_ids)]``; by default
+        problems are drawn uniformly from ``split`` with ``seed``.
+    """
+    if not isinstance(model, DREAM):
+        raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
+    n_trials = check_positive_int("n_trials", n_trials)
+    trial_env = _make_env(env, check_choice("split", split, SPLITS), 1, env_kwargs)
+    split_ids = np.asarray(trial_env.unwrapped.problem_ids(split))
+    if problem_ids is None:
+        problem_ids = np.random.default_rng(seed).choice(split_ids, size=n_trials)
+    elif len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+    problem_ids = np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
+
+    results, agents = {}, {}
+    for source in ("g", "f"):
+        agents[source] = _DiagnosticAgent(model, problem_ids, source)
+        results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
+    if isinstance(env, str):
+        trial_env.close()
+
+    f, g = agents["g"].f, np.stack(agents["g"].g)
+    f_split = model._encode(split_ids, noisy=False)
+    sq_norms = (f_split**2).sum(axis=1)
+    # mean over ordered pairs T != T' of ||f(T) - f(T')||^2, without the [n, n, z] tensor
+    n = len(split_ids)
+    pair_sum = 2 * n * sq_norms.sum() - 2 * (f_split.sum(axis=0) ** 2).sum()
+    return DreamDiagnosis(
+        return_g=results["g"].mean,
+        return_f=results["f"].mean,
+        decoder_error=float(((g - f) ** 2).sum(axis=1).mean()),
+        f_norm_sq=float((f**2).sum(axis=1).mean()),
+        f_spread=float(pair_sum / max(1, n * (n - 1))),
+        exploration_length=float(results["g"].exploration_lengths.mean()),
+        n_trials=n_trials,
+    )
