@@ -20,7 +20,8 @@ Checkpoints are deleted once the run is complete.
 
     <env>/<algo>_seed<k>.csv          learning curve on the held-out split (--eval-splits test)
     <env>/<algo>_seed<k>_train.csv    ... on the training split, with --eval-splits test train
-    <env>/<algo>_seed<k>.json         the run's settings and final numbers
+    <env>/<algo>_seed<k>.json         the run's settings and final numbers (DREAM: also the final
+                                      model's :func:`sb3_dream.dream.diagnose`)
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
     <env>/checkpoints/                an unfinished run's last checkpoint, with --checkpoint-freq
@@ -424,6 +425,17 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         "resumed_from": None if resume is None else resume["env_steps"],
         "final": finals,
     }
+    if run.algo in ("dream", "dream_no_bottleneck"):
+        from sb3_dream.dream import diagnose
+
+        # Which side limits the final model: meta-test vs the execution policy given z = f(T).
+        diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
+        info["diagnosis"] = diagnosis.as_dict()
+        print(
+            f"[{tag}] diagnosis: return with z = g {diagnosis.return_g:.3f}, with z = f(T) {diagnosis.return_f:.3f}; "
+            f"||g - f||^2 {diagnosis.decoder_error:.2f} vs spread of f {diagnosis.f_spread:.2f}",
+            flush=True,
+        )
     tmp_info = run.info_path(out).with_suffix(".json.partial")
     tmp_info.write_text(json.dumps(info, indent=2, default=str))
     os.replace(tmp_info, run.info_path(out))

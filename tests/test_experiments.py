@@ -90,6 +90,8 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     assert not list(folder.glob("*.partial"))
     info = json.loads((folder / "dream_seed0.json").read_text())
     assert info["settings"]["steps"] == 120 and info["final"]["test"]["env_steps"] == 120
+    diagnosis = info["diagnosis"]  # DREAM runs end with sb3_dream.dream.diagnose of the final model
+    assert diagnosis["n_trials"] == 4 and 0 <= diagnosis["return_g"] <= 1 and 0 <= diagnosis["return_f"] <= 1
 
     with open(out / "summary.csv") as f:
         (row,) = list(csv.DictReader(f))
