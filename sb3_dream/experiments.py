@@ -710,6 +710,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", default="results/experiments")
     parser.add_argument("--force", action="store_true", help="redo finished runs")
     parser.add_argument("--no-plot", action="store_true", help="skip the figure")
+    parser.add_argument(
+        "--summary-only",
+        action="store_true",
+        help="train nothing: summarize and plot the finished runs among those asked for (e.g. runs made by "
+        "several commands into one --out)",
+    )
     parser.add_argument("--no-oracle", action="store_true", help="skip the optimal scripted agent's return")
     return parser
 
@@ -742,7 +748,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    records = run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
+    records = [] if args.summary_only else run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
 
     oracles: Dict[Tuple[str, str], float] = {}
     if not args.no_oracle:

@@ -104,6 +104,11 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     pytest.importorskip("matplotlib")
     assert (out / "curves.png").stat().st_size > 0
 
+    # Summarize only, asking for a seed that was never run: nothing is trained, the table counts two.
+    assert experiments.main([*argv, "--seeds", "0", "1", "2", "--summary-only", "--no-plot"]) == []
+    assert "| MetaBandit-v0 | dream | test | 2 |" in capsys.readouterr().out
+    assert not (folder / "dream_seed2.csv").exists() and not (folder / "dream_seed2.csv.partial").exists()
+
     # Run again: both runs are finished, nothing is trained, nothing is rewritten.
     stamps = {p: p.stat().st_mtime_ns for p in folder.glob("dream_seed*.csv")}
     records = experiments.main(argv)
