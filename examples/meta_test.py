@@ -3,6 +3,7 @@
     python examples/meta_test.py --model dream_metabus.zip --trials 500
     python examples/meta_test.py --model rl2dqn_bus.zip --env MetaBus-v0 --n-exec-episodes 3
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --exhaustive
+    python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --diagnose
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
@@ -10,6 +11,10 @@ instruction. The score is the mean execution return per episode, with a 95% conf
 over trials. The problem ID never reaches the model: it sees observations only (DREAM also the
 exploration's last state from ``info["final_obs"]``). ``--exhaustive`` cycles through every
 problem of the split instead of drawing them.
+
+``--diagnose`` (DREAM only) also runs :func:`sb3_dream.dream.diagnose`: the same trials once more
+with the execution policy given the privileged z = f(T), to tell whether exploration (and the
+decoder) or execution limits the model.
 
 The model's algorithm (DREAM or RL2DQN) is read from the saved file.
 """
@@ -57,6 +62,7 @@ def main() -> None:
     parser.add_argument("--n-exec-episodes", type=int, default=1)
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--diagnose", action="store_true", help="DREAM: also meta-test with z = f(T) (privileged)")
     args = parser.parse_args()
 
     env_kwargs = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
@@ -82,6 +88,18 @@ def main() -> None:
             problem_ids=problem_ids,
         )
         print(f"  {name:>20}: {result.summary()}")
+    if args.diagnose:
+        from sb3_dream.dream import DREAM, diagnose
+
+        if not isinstance(model, DREAM):
+            raise SystemExit(f"--diagnose needs a DREAM model, got {type(model).__name__}")
+        d = diagnose(  # one execution episode per trial
+            model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
+        )
+        print(
+            f"  diagnosis: return with z = g(tau^exp) {d.return_g:.3f}, with z = f(T) {d.return_f:.3f}; "
+            f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f})"
+        )
 
 
 if __name__ == "__main__":
