@@ -47,7 +47,7 @@ class _DiagnosticAgent(DreamTrialAgent):
     """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source="f"``, acts on f(T)."""
 
     def __init__(self, model: DREAM, problem_ids: np.ndarray, z_source: str) -> None:
-        self.problem_ids, self.z_source = problem_ids, z_source
+        self.z_source = z_source
         self.f = model._encode(problem_ids, noisy=False)  # f(T) of trial k's problem
         self.g: List[np.ndarray] = []
         super().__init__(model, deterministic=True)
