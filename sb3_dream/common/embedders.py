@@ -65,11 +65,32 @@ class MultiDiscreteEmbedder(nn.Module):
         self.embedding = nn.Embedding(int(flat.sum()), per_dim)
         self.mlp, self.embed_dim = relu_mlp(per_dim * len(flat), hidden_dims)
 
+        # Mixed-radix weights giving each value one integer key (when they fit in int64): training
+        # batches repeat few distinct values (a grid world has ~100 states, a batch ~1000 rows), so
+        # the MLP runs on the distinct ones only; the output is the same function of x.
+        sizes = [int(n) for n in flat]
+        radix = np.concatenate([np.cumprod(sizes[::-1])[::-1][1:], [1]]) if sizes else np.ones(0)
+        self.distinct_keys = bool(np.prod([float(n) for n in sizes]) < 2.0**62)
+        self.register_buffer("radix", th.as_tensor(radix.astype(np.int64), dtype=th.long), persistent=False)
+
+    #: batches with at least this many rows go through the MLP once per distinct value
+    dedup_min_rows = 256
+
     def forward(self, x: th.Tensor) -> th.Tensor:
         flat, batch_shape = _flatten_batch(x, self.event_shape)
-        idx = flat.reshape(flat.shape[0], -1).long() + self.offsets
-        out = self.mlp(self.embedding(idx).flatten(1))
+        values = flat.reshape(flat.shape[0], -1).long()
+        if self.distinct_keys and values.shape[0] >= self.dedup_min_rows:
+            keys, inverse = th.unique(values @ self.radix, return_inverse=True)
+            distinct = th.empty(len(keys), values.shape[1], dtype=th.long, device=values.device)
+            distinct[inverse] = values
+            out = self._embed(distinct)[inverse]
+        else:
+            out = self._embed(values)
         return out.reshape(*batch_shape, self.embed_dim)
+
+    def _embed(self, values: th.Tensor) -> th.Tensor:
+        """[N, n_dims] values -> [N, embed_dim]."""
+        return self.mlp(self.embedding(values + self.offsets).flatten(1))
 
 
 class DiscreteEmbedder(nn.Module):
