@@ -619,30 +619,33 @@ class DREAM(TrialOffPolicyAlgorithm):
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
     def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> Dict[str, float]:
-        """One gradient step of each part that is ready (Algorithm 1, lines 14-21)."""
+        """One gradient step of each part that is ready, in Algorithm 1's order: exploration
+        (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21)."""
         policy, buffers, stats = self.policy, self.replay_buffer, {}
-        exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng) if execution_ready else None
-        exp_slots = self._rng.integers(len(buffers.exploration), size=batch_size) if exploration_ready else None
-        # One fused decoder pass over the trajectories of both batches.
-        slots = np.concatenate([s for s in (None if exe is None else exe.slots, exp_slots) if s is not None])
-        traj = buffers.exploration.get(slots)
-        g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix
-        f_all = policy.encoder(traj.problem_features)  # [N, z]
-        n_exe = 0 if exe is None else len(exe.slots)
-
-        if exe is not None:
-            stats.update(self._execution_losses(exe, traj, g_all, f_all, n_exe))
-        if exp_slots is not None:
-            stats.update(self._exploration_update(traj, g_all[n_exe:].detach(), f_all[n_exe:].detach(), n_exe))
+        if exploration_ready:
+            traj = buffers.exploration.get(self._rng.integers(len(buffers.exploration), size=batch_size))
+            with th.no_grad():  # the rewards are recomputed with the current f and g, as targets
+                g, f = policy.decoder(traj.states, traj.actions), policy.encoder(traj.problem_features)
+            stats.update(self._exploration_update(traj, g, f))
+        if execution_ready:
+            exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
+            traj = buffers.exploration.get(exe.slots)  # each transition's exploration trajectory
+            g = policy.decoder(traj.states, traj.actions)  # [B, T+1, z]: every prefix in one pass
+            stats.update(self._execution_losses(exe, traj, g, policy.encoder(traj.problem_features)))
         return stats
 
-    def _execution_losses(self, exe, traj: TrajectoryBatch, g_all: th.Tensor, f_all: th.Tensor, n_exe: int) -> Dict[str, float]:
-        """Execution DDQN with z from g and from F, the bottleneck and the decoder loss, one step."""
+    def _execution_losses(self, exe, traj: TrajectoryBatch, g_all: th.Tensor, f: th.Tensor) -> Dict[str, float]:
+        """Execution DDQN with z from g and from F, the bottleneck and the decoder loss, one step.
+
+        Everything here is computed on the same execution samples (Appendix A: the bottleneck and
+        the decoder are updated "from the same execution replay buffer samples"): ``g_all``
+        [B, T+1, z] is g of every prefix of each transition's exploration trajectory, ``f`` [B, z].
+        """
         policy = self.policy
+        n_exe = len(exe.actions)
         rows = th.arange(n_exe, device=self.device)
-        lengths = traj.lengths[:n_exe]
+        lengths = traj.lengths
         z_g = g_all[rows, lengths]  # g(tau^exp) of each transition's trial
-        f = f_all[:n_exe]
         z_f = f
         if self.bottleneck and self.encoder_variance > 0:
             z_f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
@@ -656,9 +659,8 @@ class DREAM(TrialOffPolicyAlgorithm):
             next_online = policy.execution_q.q_values(
                 policy.execution_q.embed(exe.next_states, exe.instructions).repeat(2, 1), z
             )
-            sub = TrajectoryBatch(*(x[:n_exe] for x in traj))
-            z_g_target = policy.decoder_target(sub.states, sub.actions)[rows, lengths]
-            z_f_target = policy.encoder_target(sub.problem_features)
+            z_g_target = policy.decoder_target(traj.states, traj.actions)[rows, lengths]
+            z_f_target = policy.encoder_target(traj.problem_features)
             next_target = policy.execution_q_target.q_values(
                 policy.execution_q_target.embed(exe.next_states, exe.instructions).repeat(2, 1),
                 th.cat([z_g_target, z_f_target]),
@@ -668,12 +670,12 @@ class DREAM(TrialOffPolicyAlgorithm):
         td = F.mse_loss(q, target, reduction="none")
         loss_traj, loss_prob = td[:n_exe].mean(), td[n_exe:].mean()
 
-        f_norm = f_all.pow(2).sum(dim=1)
-        bottleneck = self.bottleneck_loss(f_all)
+        f_norm = f.pow(2).sum(dim=1)
+        bottleneck = self.bottleneck_loss(f)
         # Decoder regression (Equation 4) toward stop-gradient f over every valid prefix t = 0..T.
         n_prefix = g_all.shape[1]
         valid = (th.arange(n_prefix, device=self.device)[None] <= traj.lengths[:, None]).float()
-        sq = (g_all - f_all.detach()[:, None]).pow(2).sum(dim=-1)
+        sq = (g_all - f.detach()[:, None]).pow(2).sum(dim=-1)
         decoder_loss = (sq * valid).sum() / valid.sum()
 
         loss = loss_traj + loss_prob + self.bottleneck_weight * bottleneck + decoder_loss
@@ -709,12 +711,11 @@ class DREAM(TrialOffPolicyAlgorithm):
         valid = th.arange(r.shape[1], device=r.device)[None] < lengths[:, None]
         return r * valid
 
-    def _exploration_update(self, traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor, offset: int) -> Dict[str, float]:
+    def _exploration_update(self, traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor) -> Dict[str, float]:
         """Exploration DDQN over whole trajectories (fused LSTM unroll) on relabelled rewards."""
         policy = self.policy
-        states = traj.states[offset:]
-        actions, prev_actions = traj.actions[offset:], traj.prev_actions[offset:]
-        prev_rewards, lengths = traj.prev_rewards[offset:], traj.lengths[offset:]
+        states, actions, prev_actions = traj.states, traj.actions, traj.prev_actions
+        prev_rewards, lengths = traj.prev_rewards, traj.lengths
         t_max = actions.shape[1]
         rewards = self.exploration_rewards(g, f, lengths)  # [B, T]
         q_all, _ = policy.exploration_q(states, prev_actions, prev_rewards)  # [B, T+1, A]
