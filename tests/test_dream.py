@@ -221,6 +221,37 @@ def test_image_trials_train_and_meta_test():
     assert result.returns.shape == (1, 1) and -1.0 <= result.mean <= 1.0
 
 
+def test_decoder_and_bottleneck_learn_from_the_execution_samples_only():
+    # Appendix A: f and g are updated "from the same execution replay buffer samples"; on the
+    # exploration samples they only give the rewards (targets, no gradient).
+    model = DREAM("MetaBus-v0", seed=1, **FAST)
+    model.learn(300)
+    policy, calls = model.policy, []
+    for name, net in [("g", policy.decoder), ("f", policy.encoder)]:
+        net.register_forward_hook(lambda m, i, o, name=name: calls.append((name, i[0].shape[0], o.requires_grad)))
+    before = [p.detach().clone() for p in policy.decoder.parameters()]
+    model._update(8, exploration_ready=True, execution_ready=False)
+    assert calls == [("g", 8, False), ("f", 8, False)]
+    assert all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
+    calls.clear()
+    model._update(8, exploration_ready=True, execution_ready=True)
+    assert calls == [("g", 8, False), ("f", 8, False), ("g", 8, True), ("f", 8, True)]
+    assert not all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
+
+
+def test_execution_body_is_an_option(tmp_path):
+    model = DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=(128, 32)))
+    widths = [m.out_features for m in model.policy.execution_q.body if isinstance(m, th.nn.Linear)]
+    assert widths == [128, 32] and model.policy.execution_q.head.value.in_features == 32
+    model.save(tmp_path / "wide.zip")
+    loaded = DREAM.load(tmp_path / "wide.zip")
+    assert loaded.policy.execution_hidden_sizes == (128, 32)
+    default = DREAM("MetaBandit-v0").policy.execution_q.body
+    assert [m.out_features for m in default if isinstance(m, th.nn.Linear)] == [64]  # the paper's
+    with pytest.raises(ValueError, match="execution_hidden_sizes"):
+        DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=()))
+
+
 def test_bad_input():
     with pytest.raises(TypeError, match="Dict observation"):
         DREAM("CartPole-v1")

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, Optional, Tuple, Type
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch as th
@@ -73,16 +73,28 @@ class TrajectoryDecoder(nn.Module):
 
 
 class ExecutionQNetwork(nn.Module):
-    """Q^exe(s, i, z, .): [e(s); e(i); z] -> Linear 64 + ReLU -> dueling head (Appendix B.3)."""
+    """Q^exe(s, i, z, .): [e(s); e(i); z] -> Linear 64 + ReLU -> dueling head (Appendix B.3).
 
-    def __init__(self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64) -> None:
+    ``hidden_sizes`` are the layers between the concatenation and the dueling head: the paper's
+    ``(64,)`` by default; wider or deeper bodies are an option (the one layer is where the
+    instruction and z must interact to pick, e.g., the right bus).
+    """
+
+    def __init__(
+        self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64, hidden_sizes: Sequence[int] = (64,)
+    ) -> None:
         super().__init__()
+        if len(hidden_sizes) == 0 or any(int(h) < 1 for h in hidden_sizes):
+            raise ValueError(f"execution_hidden_sizes must be a non-empty sequence of positive ints, got {hidden_sizes!r}")
         self.state_embed = make_state_embedder(observation_space["obs"])
         self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec)
-        self.body = nn.Sequential(
-            nn.Linear(self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim, 64), nn.ReLU()
-        )
-        self.head = DuelingHead(64, n_actions)
+        layers: List[nn.Module] = []
+        width = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
+        for h in hidden_sizes:
+            layers += [nn.Linear(width, int(h)), nn.ReLU()]
+            width = int(h)
+        self.body = nn.Sequential(*layers)
+        self.head = DuelingHead(width, n_actions)
 
     def embed(self, states: th.Tensor, instructions: th.Tensor) -> th.Tensor:
         """[e(s); e(i)]: computed once and shared by the rows that differ only in z."""
@@ -130,6 +142,9 @@ class DreamPolicy(BasePolicy):
 
     Two optimizers: ``optimizer`` for the execution side (Q^exe, f, g: they share the execution
     losses) and ``exploration_optimizer`` for Q^exp (trained on rewards computed without gradient).
+
+    Options (``policy_kwargs``): ``z_dim``, and ``execution_hidden_sizes`` the layers of Q^exe's body
+    (the paper's ``(64,)``).
     """
 
     def __init__(
@@ -139,6 +154,7 @@ class DreamPolicy(BasePolicy):
         lr_schedule: Schedule,
         problem_nvec: Optional[np.ndarray] = None,
         z_dim: int = 64,
+        execution_hidden_sizes: Sequence[int] = (64,),
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
     ) -> None:
@@ -147,10 +163,11 @@ class DreamPolicy(BasePolicy):
             raise ValueError("problem_nvec is required (the sizes of the env's problem_features)")
         self.problem_nvec = np.asarray(problem_nvec, dtype=np.int64)
         self.z_dim = z_dim
+        self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)
         n_actions = int(action_space.n)
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
-        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim)
+        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, self.execution_hidden_sizes)
         self.exploration_q = ExplorationQNetwork(observation_space, n_actions)
         self.encoder_target = copy.deepcopy(self.encoder)
         self.decoder_target = copy.deepcopy(self.decoder)
@@ -179,7 +196,11 @@ class DreamPolicy(BasePolicy):
 
     def _get_constructor_parameters(self) -> Dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(problem_nvec=self.problem_nvec, z_dim=self.z_dim, lr_schedule=self._dummy_schedule)
+        data.update(
+            problem_nvec=self.problem_nvec,
+            z_dim=self.z_dim,
+            execution_hidden_sizes=self.execution_hidden_sizes,
+            lr_schedule=self._dummy_schedule)
         return data
 
     def _predict(self, observation: Any, deterministic: bool = True) -> th.Tensor:
