@@ -248,8 +248,9 @@ def test_execution_body_is_an_option(tmp_path):
     assert loaded.policy.execution_hidden_sizes == (128, 32)
     default = DREAM("MetaBandit-v0").policy.execution_q.body
     assert [m.out_features for m in default if isinstance(m, th.nn.Linear)] == [64]  # the paper's
-    with pytest.raises(ValueError, match="execution_hidden_sizes"):
-        DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=()))
+    for bad in [(), 128, (64, 0), ("64",)]:
+        with pytest.raises(ValueError, match="execution_hidden_sizes"):
+            DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=bad))
 
 
 def test_bad_input():

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Type
+from typing import Any, Dict, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch as th
@@ -21,7 +21,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder
+from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder, relu_mlp
 from sb3_dream.common.recurrent import DuelingHead
 
 LSTMState = Tuple[th.Tensor, th.Tensor]
@@ -84,16 +84,15 @@ class ExecutionQNetwork(nn.Module):
         self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64, hidden_sizes: Sequence[int] = (64,)
     ) -> None:
         super().__init__()
-        if len(hidden_sizes) == 0 or any(int(h) < 1 for h in hidden_sizes):
-            raise ValueError(f"execution_hidden_sizes must be a non-empty sequence of positive ints, got {hidden_sizes!r}")
+        positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
+        if not (isinstance(hidden_sizes, (list, tuple)) and len(hidden_sizes) > 0 and all(map(positive, hidden_sizes))):
+            raise ValueError(
+                f"execution_hidden_sizes must be a non-empty list or tuple of positive ints, got {hidden_sizes!r}"
+            )
         self.state_embed = make_state_embedder(observation_space["obs"])
         self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec)
-        layers: List[nn.Module] = []
-        width = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
-        for h in hidden_sizes:
-            layers += [nn.Linear(width, int(h)), nn.ReLU()]
-            width = int(h)
-        self.body = nn.Sequential(*layers)
+        in_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
+        self.body, width = relu_mlp(in_dim, [int(h) for h in hidden_sizes])
         self.head = DuelingHead(width, n_actions)
 
     def embed(self, states: th.Tensor, instructions: th.Tensor) -> th.Tensor:
@@ -163,11 +162,11 @@ class DreamPolicy(BasePolicy):
             raise ValueError("problem_nvec is required (the sizes of the env's problem_features)")
         self.problem_nvec = np.asarray(problem_nvec, dtype=np.int64)
         self.z_dim = z_dim
-        self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)
         n_actions = int(action_space.n)
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
-        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, self.execution_hidden_sizes)
+        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, execution_hidden_sizes)
+        self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)  # checked by the network
         self.exploration_q = ExplorationQNetwork(observation_space, n_actions)
         self.encoder_target = copy.deepcopy(self.encoder)
         self.decoder_target = copy.deepcopy(self.decoder)
@@ -200,7 +199,8 @@ class DreamPolicy(BasePolicy):
             problem_nvec=self.problem_nvec,
             z_dim=self.z_dim,
             execution_hidden_sizes=self.execution_hidden_sizes,
-            lr_schedule=self._dummy_schedule)
+            lr_schedule=self._dummy_schedule,
+        )
         return data
 
     def _predict(self, observation: Any, deterministic: bool = True) -> th.Tensor:
