@@ -14,7 +14,9 @@ the run saves its model (with optimizer states and counters) and replay buffers 
 ``<env>/checkpoints/``, and the same command later goes on from the last checkpoint, keeping the
 learning curve and wall-clock so far (the envs start fresh trials; nothing else is lost). This is
 how budgets longer than one sitting (the paper's millions of steps) are run on a laptop.
-Checkpoints are deleted once the run is complete.
+A complete run keeps its last checkpoint (at its final step), so the same command with a larger
+``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
+starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
 
 **Outputs** under ``--out``::
 
@@ -24,7 +26,7 @@ Checkpoints are deleted once the run is complete.
                                       model's :func:`sb3_dream.dream.diagnose`)
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
-    <env>/checkpoints/                an unfinished run's last checkpoint, with --checkpoint-freq
+    <env>/checkpoints/                each run's last checkpoint, with --checkpoint-freq
     summary.csv, summary.md           final return mean +- std over seeds, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
                                       (and split), like the paper's Figures 5 and 6
@@ -321,6 +323,13 @@ class Checkpointer:
         os.replace(tmp, self.path)
         self.remove(keep=stem)
 
+    def saved_steps(self) -> Optional[int]:
+        """The env steps of the last checkpoint on disk (whatever its settings), or None."""
+        try:
+            return int(json.loads(self.path.read_text())["env_steps"])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
     def remove(self, keep: Optional[str] = None) -> None:
         """Delete this run's checkpoint files (all, or all but the ``keep`` stem's)."""
         for path in self.folder.glob(f"{self.run.name}.*"):
@@ -410,6 +419,9 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     seconds = seconds_before + time.perf_counter() - start
     env.close()
 
+    if config.checkpoint_freq and checkpointer.saved_steps() != model.num_timesteps:
+        # Kept once the run is complete, so that a larger budget later extends it.
+        checkpointer.save(model, {cb.split: cb.results for cb in callbacks}, seconds)
     if config.save_models:
         tmp = run.model_path(out).with_name(run.name + ".partial.zip")
         model.save(tmp)
@@ -442,7 +454,6 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     # The held-out curve (the completion mark) is renamed last.
     for split in sorted(config.eval_splits, key=lambda s: s == "test"):
         os.replace(partial[split], run.curve_path(out, split))
-    checkpointer.remove()
     return {"run": run, "status": "done", "seconds": seconds, "final": finals}
 
 
@@ -483,12 +494,19 @@ def run_experiments(
     records: List[Dict[str, Any]] = []
     pending: List[Run] = []
     for run in runs:
-        if run.is_complete(out, config) and not force:
+        checkpointer = Checkpointer(run, config, out)
+        if not run.is_complete(out, config):
+            pending.append(run)
+        elif force:
+            checkpointer.remove()  # redo from scratch, not from the kept final checkpoint
+            pending.append(run)
+        elif _extendable(config, checkpointer):
+            print(f"extend {run.algo} {run.env.label} seed {run.seed} to {config.steps} env steps", flush=True)
+            pending.append(run)
+        else:
             _warn_if_settings_differ(run, config, out)
             print(f"skip {run.algo} {run.env.label} seed {run.seed}: finished ({run.curve_path(out)})", flush=True)
             records.append({"run": run, "status": "skipped"})
-        else:
-            pending.append(run)
     if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1):
         raise ValueError(f"jobs must be an integer >= 1 or None (the machine's cores), got {jobs!r}")
     jobs = min(jobs or os.cpu_count() or 1, max(len(pending), 1))
@@ -513,6 +531,14 @@ def run_experiments(
                 flush=True,
             )
     return records
+
+
+def _extendable(config: RunConfig, checkpointer: Checkpointer) -> bool:
+    """Whether a complete run goes on to ``config.steps`` from its kept final checkpoint: with
+    ``--checkpoint-freq``, a checkpoint short of ``config.steps``, made with the same settings but
+    the budget."""
+    steps = checkpointer.saved_steps()
+    return bool(config.checkpoint_freq) and steps is not None and steps < config.steps and checkpointer.load() is not None
 
 
 def _warn_if_settings_differ(run: Run, config: RunConfig, out: pathlib.Path) -> None:

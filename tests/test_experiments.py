@@ -167,4 +167,43 @@ def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch
     assert np.all(np.diff(curve["wall_clock_s"]) > 0)
     info = json.loads(run.info_path(out).read_text())
     assert info["resumed_from"] == 200 and record["seconds"] >= checkpoint["train_seconds"]
-    assert not run.checkpoint_path(out).parent.exists() or not any(run.checkpoint_path(out).parent.iterdir())
+    # The complete run keeps one checkpoint, at its final step (for a later, larger budget).
+    assert json.loads(run.checkpoint_path(out).read_text())["env_steps"] == 400
+    assert sorted(p.name for p in run.checkpoint_path(out).parent.iterdir()) == [
+        f"{run.name}.400.pkl", f"{run.name}.400.zip", f"{run.name}.json"
+    ]  # fmt: skip
+
+
+def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_path, capsys):
+    out = tmp_path / "results"
+    kwargs = dict(
+        eval_freq=100, eval_trials=2, checkpoint_freq=100,
+        dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+    )  # fmt: skip
+    run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
+    experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1)
+    first = load_curve(run.curve_path(out))
+    assert first["env_steps"].tolist() == [0, 100, 200]
+
+    # The same budget: finished, skipped.
+    (record,) = experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1)
+    assert record["status"] == "skipped"
+
+    # A larger budget goes on from the kept checkpoint at 200: the first rows are kept as they were.
+    (record,) = experiments.run_experiments([run], RunConfig(steps=400, **kwargs), out, jobs=1)
+    assert record["status"] == "done" and "extend dream" in capsys.readouterr().out
+    curve = load_curve(run.curve_path(out))
+    assert curve["env_steps"].tolist() == [0, 100, 200, 300, 400]
+    assert curve["mean"][:3].tolist() == first["mean"].tolist()
+    assert curve["wall_clock_s"][:3].tolist() == first["wall_clock_s"].tolist()
+    assert json.loads(run.info_path(out).read_text())["resumed_from"] == 200
+
+    # Without checkpoints a larger budget cannot extend it (it would start over): skipped, warned.
+    (record,) = experiments.run_experiments([run], RunConfig(steps=600, **{**kwargs, "checkpoint_freq": 0}), out, jobs=1)
+    assert record["status"] == "skipped" and "other settings (steps)" in capsys.readouterr().out
+
+    # --force redoes it from scratch, not from the kept checkpoint.
+    (record,) = experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1, force=True)
+    assert record["status"] == "done"
+    assert json.loads(run.info_path(out).read_text())["resumed_from"] is None
+    assert load_curve(run.curve_path(out))["env_steps"].tolist() == [0, 100, 200]
