@@ -240,7 +240,9 @@ def test_decoder_and_bottleneck_learn_from_the_execution_samples_only():
 
 
 def test_execution_body_is_an_option(tmp_path):
-    model = DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=(128, 32)))
+    policy_kwargs = dict(execution_hidden_sizes=(128, 32))
+    model = DREAM("MetaBandit-v0", policy_kwargs=policy_kwargs)
+    assert policy_kwargs == dict(execution_hidden_sizes=(128, 32))  # the caller's dict is not changed
     widths = [m.out_features for m in model.policy.execution_q.body if isinstance(m, th.nn.Linear)]
     assert widths == [128, 32] and model.policy.execution_q.head.value.in_features == 32
     model.save(tmp_path / "wide.zip")

@@ -176,21 +176,25 @@ def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch
 
 def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_path, capsys):
     out = tmp_path / "results"
-    kwargs = dict(
-        eval_freq=100, eval_trials=2, checkpoint_freq=100,
-        dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
-    )  # fmt: skip
+    # policy_kwargs too, parsed afresh for each command as on the command line: the model must not
+    # change them, or the checkpoint's settings would not match the next command's.
+    dream_kwargs = TINY_DREAM + ["policy_kwargs={'execution_hidden_sizes':(32,)}"]
+
+    def config(steps, checkpoint_freq=100):
+        kwargs = tuple(sorted(parse_kwargs(dream_kwargs, "dream").items()))
+        return RunConfig(steps=steps, eval_freq=100, eval_trials=2, checkpoint_freq=checkpoint_freq, dream_kwargs=kwargs)
+
     run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
-    experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1)
+    experiments.run_experiments([run], config(200), out, jobs=1)
     first = load_curve(run.curve_path(out))
     assert first["env_steps"].tolist() == [0, 100, 200]
 
     # The same budget: finished, skipped.
-    (record,) = experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1)
+    (record,) = experiments.run_experiments([run], config(200), out, jobs=1)
     assert record["status"] == "skipped"
 
     # A larger budget goes on from the kept checkpoint at 200: the first rows are kept as they were.
-    (record,) = experiments.run_experiments([run], RunConfig(steps=400, **kwargs), out, jobs=1)
+    (record,) = experiments.run_experiments([run], config(400), out, jobs=1)
     assert record["status"] == "done" and "extend dream" in capsys.readouterr().out
     curve = load_curve(run.curve_path(out))
     assert curve["env_steps"].tolist() == [0, 100, 200, 300, 400]
@@ -199,11 +203,11 @@ def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_p
     assert json.loads(run.info_path(out).read_text())["resumed_from"] == 200
 
     # Without checkpoints a larger budget cannot extend it (it would start over): skipped, warned.
-    (record,) = experiments.run_experiments([run], RunConfig(steps=600, **{**kwargs, "checkpoint_freq": 0}), out, jobs=1)
+    (record,) = experiments.run_experiments([run], config(600, checkpoint_freq=0), out, jobs=1)
     assert record["status"] == "skipped" and "other settings (steps)" in capsys.readouterr().out
 
     # --force redoes it from scratch, not from the kept checkpoint.
-    (record,) = experiments.run_experiments([run], RunConfig(steps=200, **kwargs), out, jobs=1, force=True)
+    (record,) = experiments.run_experiments([run], config(200), out, jobs=1, force=True)
     assert record["status"] == "done"
     assert json.loads(run.info_path(out).read_text())["resumed_from"] is None
     assert load_curve(run.curve_path(out))["env_steps"].tolist() == [0, 100, 200]

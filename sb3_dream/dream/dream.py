@@ -254,7 +254,8 @@ class DREAM(TrialOffPolicyAlgorithm):
             self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
         )
         self._rng = np.random.default_rng(self.seed)
-        self.policy_kwargs.update(problem_nvec=self.problem_nvec, z_dim=self.z_dim)
+        # A new dict: the caller's policy_kwargs stay as given (the experiment runner compares them).
+        self.policy_kwargs = {**self.policy_kwargs, "problem_nvec": self.problem_nvec, "z_dim": self.z_dim}
         self.policy = self.policy_class(self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs)
         self.policy = self.policy.to(self.device)
         exploration = ExplorationBuffer(
