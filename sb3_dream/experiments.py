@@ -538,7 +538,9 @@ def _extendable(config: RunConfig, checkpointer: Checkpointer) -> bool:
     ``--checkpoint-freq``, a checkpoint short of ``config.steps``, made with the same settings but
     the budget."""
     steps = checkpointer.saved_steps()
-    return bool(config.checkpoint_freq) and steps is not None and steps < config.steps and checkpointer.load() is not None
+    if not config.checkpoint_freq or steps is None or steps >= config.steps:
+        return False
+    return checkpointer.load() is not None
 
 
 def _warn_if_settings_differ(run: Run, config: RunConfig, out: pathlib.Path) -> None:

@@ -182,7 +182,9 @@ def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_p
 
     def config(steps, checkpoint_freq=100):
         kwargs = tuple(sorted(parse_kwargs(dream_kwargs, "dream").items()))
-        return RunConfig(steps=steps, eval_freq=100, eval_trials=2, checkpoint_freq=checkpoint_freq, dream_kwargs=kwargs)
+        return RunConfig(
+            steps=steps, eval_freq=100, eval_trials=2, checkpoint_freq=checkpoint_freq, dream_kwargs=kwargs
+        )
 
     run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
     experiments.run_experiments([run], config(200), out, jobs=1)

@@ -32,12 +32,10 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
 
-import gymnasium as gym
 import numpy as np
 import torch as th
 import torch.nn.functional as F
 from gymnasium import spaces
-from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
@@ -81,7 +79,9 @@ class TrialState:
 
     def as_tuple(self) -> Tuple[np.ndarray, ...]:
         h, c = (t.detach().cpu().numpy() for t in self.hidden)
-        return (h, c, self.states, self.actions, self.prev_actions, self.prev_rewards, self.length, self.z, self.z_ready)
+        return (
+            h, c, self.states, self.actions, self.prev_actions, self.prev_rewards, self.length, self.z, self.z_ready
+        )
 
     @classmethod
     def from_tuple(cls, state: Tuple[np.ndarray, ...], device: th.device) -> "TrialState":
@@ -256,10 +256,16 @@ class DREAM(TrialOffPolicyAlgorithm):
         self._rng = np.random.default_rng(self.seed)
         # A new dict: the caller's policy_kwargs stay as given (the experiment runner compares them).
         self.policy_kwargs = {**self.policy_kwargs, "problem_nvec": self.problem_nvec, "z_dim": self.z_dim}
-        self.policy = self.policy_class(self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs)
+        self.policy = self.policy_class(
+            self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
+        )
         self.policy = self.policy.to(self.device)
         exploration = ExplorationBuffer(
-            self.buffer_size, self.exploration_horizon, self.observation_space["obs"], len(self.problem_nvec), self.device
+            self.buffer_size,
+            self.exploration_horizon,
+            self.observation_space["obs"],
+            len(self.problem_nvec),
+            self.device,
         )
         execution = ExecutionBuffer(self.execution_buffer_size, self.observation_space, self.device)
         self.replay_buffer = DreamReplayBuffer(exploration, execution)
@@ -272,7 +278,9 @@ class DREAM(TrialOffPolicyAlgorithm):
     def _get_torch_save_params(self) -> Tuple[List[str], List[str]]:
         return ["policy", "policy.optimizer", "policy.exploration_optimizer"], []
 
-    def load_replay_buffer(self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True) -> None:
+    def load_replay_buffer(
+        self, path: Union[str, pathlib.Path, io.BufferedIOBase], truncate_last_traj: bool = True
+    ) -> None:
         buffer = load_from_pkl(path, self.verbose)
         if not isinstance(buffer, DreamReplayBuffer):
             raise TypeError(f"{path} does not hold a DREAM replay buffer (got {type(buffer).__name__})")
@@ -602,8 +610,9 @@ class DREAM(TrialOffPolicyAlgorithm):
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
         # Buffers are checked too: after `load` without `load_replay_buffer` the
         # trial counter is restored but the buffers start empty.
-        exploration_ready = self._n_trials >= max(1, self.exploration_learning_starts) and len(self.replay_buffer.exploration) > 0
-        execution_ready = self._n_trials >= max(1, self.execution_learning_starts) and len(self.replay_buffer.execution) > 0
+        buffers = self.replay_buffer
+        exploration_ready = self._n_trials >= max(1, self.exploration_learning_starts) and len(buffers.exploration) > 0
+        execution_ready = self._n_trials >= max(1, self.execution_learning_starts) and len(buffers.execution) > 0
         if not (exploration_ready or execution_ready) or gradient_steps <= 0:
             return
         self.policy.set_training_mode(True)
