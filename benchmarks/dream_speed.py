@@ -6,6 +6,7 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
 (the networks choosing actions), stepping the envs, and in gradient updates.
 
     python benchmarks/dream_speed.py --env MetaBus-v0 --steps 4000 --n-envs 1 8 [--threads 1]
+    python benchmarks/dream_speed.py --parallel-updates      # DREAM(parallel_updates=True): 2 cores
 """
 
 from __future__ import annotations
@@ -58,13 +59,22 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--train-freq", type=int, default=4, help="env steps per update (paper: 4)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--parallel-updates", action="store_true", help="exploration and execution updates in two threads"
+    )
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env_kwargs = {"variant": args.variant} if args.variant else {}
-    print(f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}")
+    print(
+        f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
+        f" parallel_updates={args.parallel_updates}"
+    )
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
-        r = measure(args.env, env_kwargs, n, args.steps, args.warmup, args.seed, train_freq=args.train_freq)
+        r = measure(
+            args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
+            train_freq=args.train_freq, parallel_updates=args.parallel_updates,
+        )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
 

@@ -239,6 +239,25 @@ def test_decoder_and_bottleneck_learn_from_the_execution_samples_only():
     assert not all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
 
 
+def test_parallel_updates_compute_what_sequential_updates_do(tmp_path):
+    def trained(parallel: bool) -> DREAM:
+        model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, **FAST)
+        model.learn(400)
+        return model
+
+    sequential, parallel = trained(False), trained(True)
+    assert parallel._update_thread is not None and sequential._update_thread is None
+    assert parallel._n_updates == sequential._n_updates > 0
+    untrained = DREAM("MetaBus-v0", seed=3, **FAST).policy.state_dict()
+    for name, value in sequential.policy.state_dict().items():
+        assert th.equal(value, parallel.policy.state_dict()[name]), name
+    for net in ("exploration_q", "execution_q", "decoder"):  # both updates ran
+        key = next(k for k in untrained if k.startswith(net + "."))
+        assert not th.equal(untrained[key], parallel.policy.state_dict()[key]), key
+    parallel.save(tmp_path / "parallel.zip")  # the thread is not saved; the option is
+    assert DREAM.load(tmp_path / "parallel.zip").parallel_updates is True
+
+
 def test_execution_body_is_an_option(tmp_path):
     policy_kwargs = dict(execution_hidden_sizes=(128, 32))
     model = DREAM("MetaBandit-v0", policy_kwargs=policy_kwargs)
