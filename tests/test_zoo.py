@@ -30,6 +30,7 @@ NOT_HYPERPARAMETERS = {
     "verbose",
     "seed",
     "device",
+    "parallel_updates",  # like device: how the updates run, not what they compute
     "_init_setup_model",
     "replay_buffer_class",
     "replay_buffer_kwargs",
