@@ -288,11 +288,17 @@ class Checkpointer:
         self.run, self.config, self.path = run, config, run.checkpoint_path(out)
         self.folder = self.path.parent
 
+    def _record(self) -> Optional[Dict[str, Any]]:
+        """The last checkpoint's JSON as written (whatever its settings), or None."""
+        try:
+            return json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None
+
     def load(self) -> Optional[Dict[str, Any]]:
         """The last checkpoint's record, or None (none, or made with other settings)."""
-        try:
-            record = json.loads(self.path.read_text())
-        except (OSError, ValueError):
+        record = self._record()
+        if record is None:
             return None
         # Any settings but the budget: an unfinished run may be given more steps.
         wanted = json.loads(json.dumps(self.config.settings(self.run.algo), default=str))
@@ -326,8 +332,8 @@ class Checkpointer:
     def saved_steps(self) -> Optional[int]:
         """The env steps of the last checkpoint on disk (whatever its settings), or None."""
         try:
-            return int(json.loads(self.path.read_text())["env_steps"])
-        except (OSError, ValueError, KeyError, TypeError):
+            return int(self._record()["env_steps"])  # type: ignore[index]
+        except (KeyError, TypeError, ValueError):  # TypeError: no checkpoint
             return None
 
     def remove(self, keep: Optional[str] = None) -> None:

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import io
 import pathlib
-from concurrent.futures import Future, ThreadPoolExecutor
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
 
