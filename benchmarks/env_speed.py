@@ -49,7 +49,8 @@ def main() -> None:
     parser.add_argument("--n-envs", type=int, default=8)
     parser.add_argument("--env", choices=list(dream_envs.ENV_IDS), help="only this env (default: all)")
     args = parser.parse_args()
-    print(f"{'env':<16}{'single':>12}{'Dummy x' + str(args.n_envs):>14}{'Subproc x' + str(args.n_envs):>16}  (env steps/s)")
+    dummy, subproc = f"Dummy x{args.n_envs}", f"Subproc x{args.n_envs}"
+    print(f"{'env':<16}{'single':>12}{dummy:>14}{subproc:>16}  (env steps/s)")
     for env_id in dream_envs.ENV_IDS:
         if args.env not in (None, env_id):
             continue

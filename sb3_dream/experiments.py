@@ -69,10 +69,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from dream_envs.core import SPLITS
+from sb3_dream.evaluation import CURVE_COLUMNS
 
 ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
 PRESET_NAMES = ("paper", "fast")
-from sb3_dream.evaluation import CURVE_COLUMNS
 
 RL2DQN_PRESETS: Dict[str, Dict[str, Any]] = {
     "paper": {},
@@ -181,8 +181,9 @@ class RunConfig:
             raise ValueError(
                 f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}"
             )
-        if isinstance(self.checkpoint_freq, bool) or not isinstance(self.checkpoint_freq, int) or self.checkpoint_freq < 0:
-            raise ValueError(f"checkpoint_freq must be an integer >= 0 (0: no checkpoints), got {self.checkpoint_freq!r}")
+        freq = self.checkpoint_freq
+        if isinstance(freq, bool) or not isinstance(freq, int) or freq < 0:
+            raise ValueError(f"checkpoint_freq must be an integer >= 0 (0: no checkpoints), got {freq!r}")
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 

@@ -311,10 +311,14 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     f = bus_model._encode(split_ids, noisy=False)
     brute = ((f[:, None] - f[None]) ** 2).sum(-1)
     assert d.f_spread == pytest.approx(brute.sum() / (len(f) * (len(f) - 1)), rel=1e-4)
-    assert d.f_norm_sq == pytest.approx(float((bus_model._encode(np.array(ids), noisy=False) ** 2).sum(1).mean()), rel=1e-5)
+    f_ids = bus_model._encode(np.array(ids), noisy=False)
+    assert d.f_norm_sq == pytest.approx(float((f_ids**2).sum(1).mean()), rel=1e-5)
 
     # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
-    monkeypatch.setattr(bus_model, "_decode", lambda state, idx, n: bus_model._encode(np.full(len(idx), 40), noisy=False))
+    def perfect_decoder(state, idx, n):
+        return bus_model._encode(np.full(len(idx), 40), noisy=False)
+
+    monkeypatch.setattr(bus_model, "_decode", perfect_decoder)
     perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
     assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
     assert perfect.return_g == perfect.return_f

@@ -47,7 +47,9 @@ def test_policy_agent_carries_state_within_a_trial_and_resets_between():
 
 
 def test_pinned_problem_ids_cycle():
-    result = evaluate_meta(FirstActionModel(), "MetaBandit-v0", n_trials=6, problem_ids=[0, 1], env_kwargs={"n_actions": 2})
+    result = evaluate_meta(
+        FirstActionModel(), "MetaBandit-v0", n_trials=6, problem_ids=[0, 1], env_kwargs={"n_actions": 2}
+    )
     assert result.problem_ids.tolist() == [0, 1] * 3 and result.returns[:, 0].tolist() == [0.0, 1.0] * 3
 
 

@@ -87,9 +87,8 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     )
     assert "split=test (24 problems), 4 trials" in out
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
-    out = run_example(
-        "meta_test.py", "--model", str(model), "--env-kwargs", "variant='map'", "--trials", "3", "--diagnose", cwd=tmp_path
-    )
+    diagnose_args = ["--model", str(model), "--env-kwargs", "variant='map'", "--trials", "3", "--diagnose"]
+    out = run_example("meta_test.py", *diagnose_args, cwd=tmp_path)
     assert "diagnosis: return with z = g(tau^exp)" in out and "with z = f(T)" in out
 
     meta_test = load_example("meta_test")

@@ -157,7 +157,9 @@ class DreamPolicy(BasePolicy):
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
     ) -> None:
-        super().__init__(observation_space, action_space, optimizer_class=optimizer_class, optimizer_kwargs=optimizer_kwargs)
+        super().__init__(
+            observation_space, action_space, optimizer_class=optimizer_class, optimizer_kwargs=optimizer_kwargs
+        )
         if problem_nvec is None:
             raise ValueError("problem_nvec is required (the sizes of the env's problem_features)")
         self.problem_nvec = np.asarray(problem_nvec, dtype=np.int64)

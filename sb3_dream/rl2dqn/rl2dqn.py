@@ -10,7 +10,14 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import (
+    GymEnv,
+    MaybeCallback,
+    RolloutReturn,
+    Schedule,
+    TrainFreq,
+    TrainFrequencyUnit,
+)
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -76,7 +83,8 @@ class RL2DQN(TrialOffPolicyAlgorithm):
     **The exploration episode's last state.** A trial env returns the next episode's first
     observation at an inner episode's end; the last state lives only in ``info["final_obs"]``. By
     default RL2DQN never sees it: its input is the per-step observation, as the paper describes RL²
-    (so in MetaBandit-v0 with horizon 1, whose reveal is visible only there, it stays at chance). ``consume_final_obs=True`` wraps a trial env in
+    (so in MetaBandit-v0 with horizon 1, whose reveal is visible only there, it stays at chance).
+    ``consume_final_obs=True`` wraps a trial env in
     :class:`~sb3_dream.common.wrappers.FinalObsWrapper`, which adds it as a ``final_obs`` key,
     embedded by the state embedder on the next episode's first step. Pass a VecEnv already wrapped
     (``make_vec_env(..., wrapper_class=FinalObsWrapper)``) when vectorising yourself, and to
