@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_choice
+from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_choice, check_positive_int, play_trial
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
 
 Cell = Tuple[int, int]
@@ -312,6 +313,97 @@ class BusOracle(ScriptedAgent):
         if pos == stops[0]:
             return RIDE
         return _step_towards(pos, stops[0])
+
+
+@dataclasses.dataclass
+class BusExplorationReport:
+    """What an agent did in MetaBus exploration episodes, one entry per trial (the paper's Figure 7
+    in numbers): how many colored and gray routes it rode, whether it read the map, and what the
+    exploration led to.
+
+    A route counts as seen once the agent rides its bus from either end. Three colored routes
+    determine the fourth; the gray ones never help.
+    """
+
+    colored_routes: np.ndarray  # [n_trials] 0..4
+    gray_routes: np.ndarray  # [n_trials] 0..4
+    read_map: np.ndarray  # [n_trials] bool (map variant; False elsewhere)
+    exploration_lengths: np.ndarray  # [n_trials]
+    execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
+
+    def summary(self) -> str:
+        counts = np.bincount(self.colored_routes, minlength=len(COLORED_STOPS) + 1)
+        return (
+            f"colored routes seen {self.colored_routes.mean():.2f} (trials with 0..4: {counts.tolist()}), "
+            f"gray routes {self.gray_routes.mean():.2f}, map read {self.read_map.mean():.0%}, "
+            f"exploration length {self.exploration_lengths.mean():.1f}, "
+            f"execution return {self.execution_returns.mean():.3f}"
+        )
+
+
+class _ExplorationRecorder(ScriptedAgent):
+    """Passes ``agent``'s actions through and notes the cells it rides at and whether it reads the
+    map while exploring; it sees only what the agent sees."""
+
+    def __init__(self, agent: ScriptedAgent) -> None:
+        self.agent = agent
+
+    def reset(self) -> None:
+        self.agent.reset()
+        self.rides: List[Cell] = []
+        self.read_map = False
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        if info.get("episode_end") and info.get("episode_phase") == EXPLORATION:
+            self._note_map(info["final_obs"])  # the exploration episode's last state
+        action = self.agent.act(obs, info)
+        if int(obs["phase"]) == EXPLORATION:
+            self._note_map(obs["obs"])
+            if action == RIDE and int(obs["obs"][2]) == BUS:
+                self.rides.append((int(obs["obs"][0]), int(obs["obs"][1])))
+        return action
+
+    def _note_map(self, state: np.ndarray) -> None:
+        self.read_map |= len(state) > 3 and int(state[3]) > 0
+
+
+def exploration_report(
+    env: MetaBusEnv,
+    agent: ScriptedAgent,
+    n_trials: int = 100,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+) -> BusExplorationReport:
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration.
+
+    The problem ID is read from the env's ``info`` after each trial, to resolve which routes the
+    rides revealed; the agent never sees it. ``problem_ids`` pins trial k to
+    ``problem_ids[k % len(problem_ids)]``.
+    """
+    bus = env.unwrapped
+    if not isinstance(bus, MetaBusEnv):
+        raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
+    n_trials = check_positive_int("n_trials", n_trials)
+    recorder = _ExplorationRecorder(agent)
+    rows = []
+    for k in range(n_trials):
+        options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
+        result = play_trial(env, recorder, seed=seed + k, options=options)
+        routes = bus.routes(int(result["problem_id"]))
+        stop_of = {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
+        seen = {stop_of[cell] for cell in recorder.rides}
+        rows.append(
+            (
+                len(seen & set(COLORED_STOPS)),
+                len(seen & set(GRAY_STOPS)),
+                recorder.read_map,
+                result["exploration_length"],
+                float(np.mean(result["execution_returns"])),
+            )
+        )
+    colored, gray, read_map, lengths, returns = (np.array(column) for column in zip(*rows))
+    return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns)
 
 
 def _step_towards(pos: Cell, target: Cell) -> int:

@@ -4,6 +4,7 @@
     python examples/meta_test.py --model rl2dqn_bus.zip --env MetaBus-v0 --n-exec-episodes 3
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --exhaustive
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --diagnose
+    python examples/meta_test.py --model dream_metabus.zip --exploration
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
@@ -16,13 +17,16 @@ problem of the split instead of drawing them.
 with the execution policy given the privileged z = f(T), to tell whether exploration (and the
 decoder) or execution limits the model.
 
+``--exploration`` (MetaBus-v0 only) reports what each agent does while exploring, as the paper's
+Figure 7 shows it: colored and gray routes ridden, whether it read the map
+(:func:`dream_envs.bus.exploration_report`).
+
 The model's algorithm (DREAM or RL2DQN) is read from the saved file.
 """
 
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import zipfile
 from typing import Any
@@ -32,6 +36,7 @@ import gymnasium as gym
 import dream_envs
 from dream_envs import RandomAgent
 from sb3_dream.evaluation import evaluate_meta
+from sb3_dream.experiments import parse_kwargs
 
 
 def load_model(path: str, device: str = "cpu") -> Any:
@@ -63,9 +68,10 @@ def main() -> None:
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--diagnose", action="store_true", help="DREAM: also meta-test with z = f(T) (privileged)")
+    parser.add_argument("--exploration", action="store_true", help="MetaBus-v0: the routes each agent explores")
     args = parser.parse_args()
 
-    env_kwargs = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
+    env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, **env_kwargs)
     problem_ids = env.unwrapped.problem_ids(args.split) if args.exhaustive else None
     model = load_model(args.model)
@@ -88,6 +94,15 @@ def main() -> None:
             problem_ids=problem_ids,
         )
         print(f"  {name:>20}: {result.summary()}")
+    if args.exploration:
+        from dream_envs.bus import exploration_report
+        from sb3_dream.evaluation import as_trial_agent
+
+        if args.env != "MetaBus-v0":
+            raise SystemExit(f"--exploration needs --env MetaBus-v0, got {args.env}")
+        for name, agent in agents.items():
+            report = exploration_report(env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
+            print(f"  {name:>20} exploring: {report.summary()}")
     if args.diagnose:
         from sb3_dream.dream import DREAM, diagnose
 

@@ -18,7 +18,6 @@ scores it.
 from __future__ import annotations
 
 import argparse
-import ast
 
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
@@ -26,6 +25,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import dream_envs  # noqa: F401  (registers MetaBus-v0 and the other trial envs)
 from sb3_dream import DREAM, MetaEvalCallback, evaluate_meta
 from sb3_dream.dream.presets import PRESETS
+from sb3_dream.experiments import parse_kwargs
 
 
 def main() -> None:
@@ -51,7 +51,7 @@ def main() -> None:
 
     env_kwargs = {"variant": args.variant}
     env = make_vec_env("MetaBus-v0", n_envs=args.n_envs, seed=args.seed, env_kwargs=env_kwargs)
-    extra = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.dream_kwargs)}
+    extra = parse_kwargs(args.dream_kwargs, "--dream-kwargs")
     model = DREAM(env, seed=args.seed, verbose=0, **{**PRESETS[args.preset], **extra})
 
     evaluation = MetaEvalCallback(

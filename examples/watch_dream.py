@@ -16,7 +16,6 @@ older OpenCV if it is installed).
 from __future__ import annotations
 
 import argparse
-import ast
 import pathlib
 from typing import Any, Dict, List, Optional, Sequence
 
@@ -26,6 +25,7 @@ import numpy as np
 
 import dream_envs
 from dream_envs import EXPLORATION, ScriptedAgent, public_info
+from sb3_dream.experiments import parse_kwargs
 
 # Action names of the grid families (MetaBus-v0, MetaCook-v0 share the action set).
 GRID_ACTIONS = ("left", "up", "right", "down", "no-op", "ride bus", "end episode", "pickup", "drop")
@@ -164,7 +164,7 @@ def main() -> None:
     parser.add_argument("--out", default="dream_trial.mp4", help=".mp4, .avi or .gif")
     args = parser.parse_args()
 
-    env_kwargs = {key: ast.literal_eval(value) for key, value in (item.split("=", 1) for item in args.env_kwargs)}
+    env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(
         args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, render_mode="rgb_array", **env_kwargs
     )

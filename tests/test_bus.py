@@ -32,6 +32,7 @@ from dream_envs.bus import (
     START,
     UP,
     MetaBusEnv,
+    exploration_report,
 )
 
 VARIANTS = ("distracting", "map", "vanilla")
@@ -354,6 +355,51 @@ def test_oracle_needs_its_exploration():
     for problem_id in (0, 17):
         result = play_trial(env, SkipExploration(), options={"problem_id": problem_id, "instruction": [2]})
         assert result["execution_returns"] == pytest.approx([0.3])
+
+
+class ScriptedExplorer(ScriptedAgent):
+    """Plays ``plan`` while exploring (then ends the episode); while executing it rides the colored
+    bus at (3, 4), which no plan below rides while exploring."""
+
+    def __init__(self, plan: Sequence[int]) -> None:
+        self.plan = plan
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        if int(obs["phase"]) != EXPLORATION:
+            return {START: LEFT, (3, 4): RIDE}.get(pos(obs), UP)
+        self.k += 1
+        return self.plan[self.k - 1] if self.k <= len(self.plan) else END_EPISODE
+
+
+def test_exploration_report_of_the_oracle_matches_figure_7():
+    distracting = exploration_report(gym.make("MetaBus-v0", split="test"), make_oracle(make()), n_trials=12)
+    assert distracting.colored_routes.tolist() == [3] * 12  # rides 3 of the 4 colored buses
+    assert distracting.gray_routes.tolist() == [0] * 12 and not distracting.read_map.any()
+    assert distracting.exploration_lengths.tolist() == [11] * 12  # 10 steps, then end the episode
+    assert distracting.execution_returns == pytest.approx([0.8] * 12)
+    on_map = exploration_report(gym.make("MetaBus-v0", variant="map"), make_oracle(make("map")), n_trials=5)
+    assert on_map.read_map.all() and on_map.colored_routes.tolist() == [0] * 5
+    assert on_map.exploration_lengths.tolist() == [5] * 5
+    assert "colored routes seen 3.00 (trials with 0..4: [0, 0, 0, 12, 0])" in distracting.summary()
+
+
+def test_exploration_report_counts_each_route_once_from_either_end():
+    # Onto the gray stop (5, 5), ride there and back (one gray route), RIDE off any bus (nothing),
+    # onto the colored stop (4, 5), ride; the execution episode's ride at (3, 4) counts for nothing.
+    plan = [RIGHT, UP, RIDE, RIDE, RIGHT, RIDE, LEFT, LEFT, RIDE]
+    env = gym.make("MetaBus-v0", split="all")
+    report = exploration_report(env, ScriptedExplorer(plan), n_trials=4, problem_ids=[0, 24 * 7 + 3])
+    assert report.colored_routes.tolist() == [1] * 4 and report.gray_routes.tolist() == [1] * 4
+    assert report.exploration_lengths.tolist() == [len(plan) + 1] * 4
+    nothing = exploration_report(env, ScriptedExplorer([RIDE]), n_trials=2)  # at the start: no bus
+    assert nothing.colored_routes.tolist() == [0, 0] and nothing.gray_routes.tolist() == [0, 0]
+    with pytest.raises(ValueError, match="MetaBus-v0"):
+        exploration_report(gym.make("MetaBandit-v0"), ScriptedExplorer([]), n_trials=1)
+    with pytest.raises(ValueError, match="n_trials"):
+        exploration_report(env, ScriptedExplorer([]), n_trials=0)
 
 
 # ---------------------------------------------------------------------------------- reproducibility

@@ -87,9 +87,13 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     )
     assert "split=test (24 problems), 4 trials" in out
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
-    diagnose_args = ["--model", str(model), "--env-kwargs", "variant='map'", "--trials", "3", "--diagnose"]
-    out = run_example("meta_test.py", *diagnose_args, cwd=tmp_path)
+    diagnose_args = ["--model", str(model), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
+    out = run_example("meta_test.py", *diagnose_args, "--exploration", cwd=tmp_path)
     assert "diagnosis: return with z = g(tau^exp)" in out and "with z = f(T)" in out
+    # The oracle reads the map in every trial and ends the exploration episode after 5 steps.
+    assert "optimal (scripted) exploring: colored routes seen 0.00" in out
+    assert "map read 100%, exploration length 5.0, execution return 0.800" in out
+    assert "DREAM exploring: colored routes seen" in out and "random exploring:" in out
 
     meta_test = load_example("meta_test")
     assert type(meta_test.load_model(str(model))).__name__ == "DREAM"
