@@ -395,6 +395,9 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     else:
         model = algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
         model.load_replay_buffer(checkpointer.folder / resume["replay_buffer"])
+        # make_vec_env seeded the envs as at step 0: without a seed of its own, the resumed run
+        # would draw the same problems and instructions again, in the same order.
+        model.env.seed(run.seed + model.num_timesteps)
         seconds_before = float(resume["train_seconds"])
         print(f"[{tag}] resuming from its checkpoint at {model.num_timesteps} env steps", flush=True)
     callbacks = [

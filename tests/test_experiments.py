@@ -154,14 +154,28 @@ def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch
         evaluate(self)
 
     monkeypatch.setattr(MetaEvalCallback, "_evaluate", interrupted)
+    from dream_envs.bus import MetaBusEnv
+
+    train_seeds = []  # the seeds the training envs are reset with (evaluation uses the test split)
+    reset = MetaBusEnv.reset
+
+    def recording_reset(self, *, seed=None, options=None):
+        if seed is not None and self.split == "train":
+            train_seeds.append(seed)
+        return reset(self, seed=seed, options=options)
+
+    monkeypatch.setattr(MetaBusEnv, "reset", recording_reset)
     with pytest.raises(KeyboardInterrupt):
         experiments.run_one(run, config, out)
+    assert train_seeds == [0]  # make_vec_env: the run's seed (+ the env's index; one env here)
     checkpoint = json.loads(run.checkpoint_path(out).read_text())
     assert checkpoint["env_steps"] == 200 and not run.is_complete(out, config)
     assert sorted(p.suffix for p in run.checkpoint_path(out).parent.iterdir()) == [".json", ".pkl", ".zip"]
 
     monkeypatch.setattr(MetaEvalCallback, "_evaluate", evaluate)
     record = experiments.run_one(run, config, out)
+    # Resumed at 200 steps with new seeds: not the problems and instructions of step 0 again.
+    assert train_seeds == [0, 200]
     curve = load_curve(run.curve_path(out))
     assert curve["env_steps"].tolist() == [0, 100, 200, 300, 400]  # kept rows, then the new ones
     assert np.all(np.diff(curve["wall_clock_s"]) > 0)
