@@ -330,15 +330,18 @@ class BusExplorationReport:
     read_map: np.ndarray  # [n_trials] bool (map variant; False elsewhere)
     exploration_lengths: np.ndarray  # [n_trials]
     execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
+    variant: str = "distracting"
 
     def summary(self) -> str:
         counts = np.bincount(self.colored_routes, minlength=len(COLORED_STOPS) + 1)
-        return (
-            f"colored routes seen {self.colored_routes.mean():.2f} (trials with 0..4: {counts.tolist()}), "
-            f"gray routes {self.gray_routes.mean():.2f}, map read {self.read_map.mean():.0%}, "
-            f"exploration length {self.exploration_lengths.mean():.1f}, "
-            f"execution return {self.execution_returns.mean():.3f}"
-        )
+        parts = [f"colored routes seen {self.colored_routes.mean():.2f} (trials with 0..4: {counts.tolist()})"]
+        if self.variant == "distracting":
+            parts.append(f"gray routes {self.gray_routes.mean():.2f}")
+        if self.variant == "map":
+            parts.append(f"map read {self.read_map.mean():.0%}")
+        parts.append(f"exploration length {self.exploration_lengths.mean():.1f}")
+        parts.append(f"execution return {self.execution_returns.mean():.3f}")
+        return ", ".join(parts)
 
 
 class _ExplorationRecorder(ScriptedAgent):
@@ -403,7 +406,7 @@ def exploration_report(
             )
         )
     colored, gray, read_map, lengths, returns = (np.array(column) for column in zip(*rows))
-    return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns)
+    return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns, bus.variant)
 
 
 def _step_towards(pos: Cell, target: Cell) -> int:

@@ -383,7 +383,11 @@ def test_exploration_report_of_the_oracle_matches_figure_7():
     on_map = exploration_report(gym.make("MetaBus-v0", variant="map"), make_oracle(make("map")), n_trials=5)
     assert on_map.read_map.all() and on_map.colored_routes.tolist() == [0] * 5
     assert on_map.exploration_lengths.tolist() == [5] * 5
-    assert "colored routes seen 3.00 (trials with 0..4: [0, 0, 0, 12, 0])" in distracting.summary()
+    assert distracting.summary() == (
+        "colored routes seen 3.00 (trials with 0..4: [0, 0, 0, 12, 0]), gray routes 0.00, "
+        "exploration length 11.0, execution return 0.800"
+    )
+    assert "map read 100%, exploration length 5.0" in on_map.summary() and "gray" not in on_map.summary()
 
 
 def test_exploration_report_counts_each_route_once_from_either_end():
