@@ -14,6 +14,7 @@ from dream_envs.core import (
     ScriptedAgent,
     TrialEnv,
     play_trial,
+    play_trials,
     public_info,
 )
 
@@ -43,5 +44,6 @@ __all__ = [
     "TrialEnv",
     "make_oracle",
     "play_trial",
+    "play_trials",
     "public_info",
 ]

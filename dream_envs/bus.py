@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_choice, check_positive_int, play_trial
+from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_choice, play_trials
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
 
 Cell = Tuple[int, int]
@@ -387,12 +387,9 @@ def exploration_report(
     bus = env.unwrapped
     if not isinstance(bus, MetaBusEnv):
         raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
-    n_trials = check_positive_int("n_trials", n_trials)
     recorder = _ExplorationRecorder(agent)
     rows = []
-    for k in range(n_trials):
-        options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
-        result = play_trial(env, recorder, seed=seed + k, options=options)
+    for result in play_trials(env, recorder, n_trials, seed, problem_ids):
         routes = bus.routes(int(result["problem_id"]))
         stop_of = {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
         seen = {stop_of[cell] for cell in recorder.rides}

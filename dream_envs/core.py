@@ -47,7 +47,7 @@ execution returns.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, Dict, Optional, Sequence, SupportsFloat
+from typing import Any, Dict, Iterator, Optional, Sequence, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -402,3 +402,24 @@ def play_trial(
             result["exploration_length"] = info["episode_length"]
     result["execution_returns"] = info["execution_returns"]
     return result
+
+
+def play_trials(
+    env: gym.Env,
+    agent: ScriptedAgent,
+    n_trials: int,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+) -> Iterator[Dict[str, Any]]:
+    """:func:`play_trial` ``n_trials`` times, trial k seeded ``seed + k``; with ``problem_ids``,
+    trial k is pinned to ``problem_ids[k % len(problem_ids)]``. Arguments are checked at the call."""
+    n_trials = check_positive_int("n_trials", n_trials)
+    if problem_ids is not None and len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+
+    def trials() -> Iterator[Dict[str, Any]]:
+        for k in range(n_trials):
+            options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
+            yield play_trial(env, agent, seed=seed + k, options=options)
+
+    return trials()

@@ -19,7 +19,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 import dream_envs
-from dream_envs import ScriptedAgent, play_trial
+from dream_envs import ScriptedAgent, play_trials
 from dream_envs.core import SPLITS, check_choice, check_positive_int
 
 
@@ -149,15 +149,11 @@ def evaluate_meta(
     n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
     check_choice("split", split, SPLITS)
     trial_env = _make_env(env, split, n_exec_episodes, env_kwargs)
-    trial_agent = as_trial_agent(agent, deterministic)
-    if problem_ids is not None and len(problem_ids) == 0:
-        raise ValueError("problem_ids must not be empty")
+    trials = play_trials(trial_env, as_trial_agent(agent, deterministic), n_trials, seed, problem_ids)
 
     start = time.perf_counter()
     returns, lengths, pids = [], [], []
-    for k in range(n_trials):
-        options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
-        result = play_trial(trial_env, trial_agent, seed=seed + k, options=options)
+    for result in trials:
         returns.append(result["execution_returns"])
         lengths.append(result["exploration_length"])
         pids.append(result["problem_id"])

@@ -404,6 +404,8 @@ def test_exploration_report_counts_each_route_once_from_either_end():
         exploration_report(gym.make("MetaBandit-v0"), ScriptedExplorer([]), n_trials=1)
     with pytest.raises(ValueError, match="n_trials"):
         exploration_report(env, ScriptedExplorer([]), n_trials=0)
+    with pytest.raises(ValueError, match="problem_ids must not be empty"):
+        exploration_report(env, ScriptedExplorer([]), n_trials=1, problem_ids=[])
 
 
 # ---------------------------------------------------------------------------------- reproducibility
