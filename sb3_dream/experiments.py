@@ -332,9 +332,12 @@ class Checkpointer:
 
     def saved_steps(self) -> Optional[int]:
         """The env steps of the last checkpoint on disk (whatever its settings), or None."""
+        record = self._record()
+        if record is None:
+            return None
         try:
-            return int(self._record()["env_steps"])  # type: ignore[index]
-        except (KeyError, TypeError, ValueError):  # TypeError: no checkpoint
+            return int(record["env_steps"])
+        except (KeyError, TypeError, ValueError):
             return None
 
     def remove(self, keep: Optional[str] = None) -> None:
