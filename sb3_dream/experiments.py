@@ -31,6 +31,10 @@ starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs e
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
                                       (and split), like the paper's Figures 5 and 6
 
+The summary and the figure cover the runs asked for and every other finished run under ``--out``
+(runs made by other commands into it: other seeds, envs or sittings); ``--summary-only`` makes
+them without training anything.
+
 **Algorithms:** ``dream`` (:class:`~sb3_dream.DREAM`), ``dream_no_bottleneck``
 (``DREAM(bottleneck=False)``, the paper's ablation) and ``rl2dqn``
 (:class:`~sb3_dream.rl2dqn.RL2DQN`, the paper's RL² baseline). ``--preset paper`` keeps every
@@ -495,6 +499,32 @@ def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int
     return [Run(algo, env, int(seed)) for env in envs for algo in dict.fromkeys(algos) for seed in dict.fromkeys(seeds)]
 
 
+def finished_runs(out: pathlib.Path) -> List[Run]:
+    """Every finished run under ``out``, whichever command made it, from the runs' JSON records
+    (sorted by env folder, algorithm and seed)."""
+    found = []
+    for path in sorted(pathlib.Path(out).glob("*/*.json")):
+        try:
+            info = json.loads(path.read_text())
+            # JSON turned tuples into lists; EnvSpec must stay hashable.
+            kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in info["env_kwargs"].items()}
+            run = Run(info["algo"], EnvSpec(info["env"], tuple(sorted(kwargs.items()))), int(info["seed"]))
+        except (ValueError, KeyError, TypeError, AttributeError):
+            continue  # not a run's record (an oracle's, say)
+        if run.info_path(out) == path and run.curve_path(out).exists():
+            found.append(run)
+    order = {algo: k for k, algo in enumerate(ALGOS)}
+    return sorted(found, key=lambda r: (r.env.tag, order.get(r.algo, len(order)), r.seed))
+
+
+def _with_finished(runs: Sequence[Run], out: pathlib.Path) -> List[Run]:
+    """``runs`` followed by the other finished runs under ``out`` (one per set of files)."""
+    merged: Dict[Tuple[str, str, int], Run] = {}
+    for run in [*runs, *finished_runs(out)]:
+        merged.setdefault((run.env.tag, run.algo, run.seed), run)
+    return list(merged.values())
+
+
 def run_experiments(
     runs: Sequence[Run], config: RunConfig, out: pathlib.Path, jobs: Optional[int] = None, force: bool = False
 ) -> List[Dict[str, Any]]:
@@ -710,7 +740,10 @@ def plot_curves(
         ax.set_xlabel("env steps")
         ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
         ax.grid(alpha=0.3)
-        ax.legend(loc="best", fontsize="small")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="best", fontsize="small")
+        else:
+            ax.text(0.5, 0.5, "no finished run", ha="center", va="center", transform=ax.transAxes)
     for ax in list(axes.flat)[len(panels):]:  # fmt: skip
         ax.axis("off")
     fig.tight_layout()
@@ -754,8 +787,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--summary-only",
         action="store_true",
-        help="train nothing: summarize and plot the finished runs among those asked for (e.g. runs made by "
-        "several commands into one --out)",
+        help="train nothing: summarize and plot the finished runs under --out (e.g. runs made by several "
+        "commands into it)",
     )
     parser.add_argument("--no-oracle", action="store_true", help="skip the optimal scripted agent's return")
     return parser
@@ -791,6 +824,8 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     out.mkdir(parents=True, exist_ok=True)
     records = [] if args.summary_only else run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
 
+    # The table and the figure cover every finished run under --out, not only this command's.
+    runs = _with_finished(runs, out)
     oracles: Dict[Tuple[str, str], float] = {}
     if not args.no_oracle:
         for env in dict.fromkeys(run.env for run in runs):

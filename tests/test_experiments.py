@@ -108,6 +108,13 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     assert experiments.main([*argv, "--seeds", "0", "1", "2", "--summary-only", "--no-plot"]) == []
     assert "| MetaBandit-v0 | dream | test | 2 |" in capsys.readouterr().out
     assert not (folder / "dream_seed2.csv").exists() and not (folder / "dream_seed2.csv.partial").exists()
+    # A command about another env still tables (and plots) every finished run under --out.
+    other = ["--envs", "MetaBandit-v0:n_exec_episodes=2", "--seeds", "7", "--summary-only", "--no-oracle"]
+    assert experiments.main([*argv, *other]) == []
+    table = capsys.readouterr().out
+    assert "| MetaBandit-v0 (n_exec_episodes=2) | dream | test | 0 |" in table
+    assert "| MetaBandit-v0 | dream | test | 2 |" in table
+    assert experiments.finished_runs(out) == [Run("dream", EnvSpec("MetaBandit-v0"), s) for s in (0, 1)]
 
     # Run again: both runs are finished, nothing is trained, nothing is rewritten.
     stamps = {p: p.stat().st_mtime_ns for p in folder.glob("dream_seed*.csv")}
