@@ -27,7 +27,8 @@ starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs e
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
     <env>/checkpoints/                each run's last checkpoint, with --checkpoint-freq
-    summary.csv, summary.md           final return mean +- std over seeds, env steps, wall-clock
+    summary.csv, summary.md           final return mean +- std over seeds, the mean over each run's
+                                      last tenth of env steps, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
                                       (and split), like the paper's Figures 5 and 6
 
@@ -638,7 +639,11 @@ def summarize(
     runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
 ) -> List[Dict[str, Any]]:
     """One row per (env, algo, split): the final return's mean and std over the finished seeds
-    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock."""
+    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock.
+
+    ``last_tenth_mean`` averages each seed's evaluations over the last tenth of its env steps, then
+    the seeds: single greedy evaluations of a value-based agent swing, and one of them can
+    misrepresent where a run ended."""
     rows = []
     groups: Dict[Tuple[EnvSpec, str], List[Run]] = {}
     for run in runs:
@@ -649,9 +654,11 @@ def summarize(
             row: Dict[str, Any] = {"env": env.label, "algo": algo, "split": split, "seeds": len(curves)}
             if curves:
                 finals = np.array([c["mean"][-1] for c in curves])
+                last_tenth = [c["mean"][c["env_steps"] >= 0.9 * c["env_steps"][-1]].mean() for c in curves]
                 row.update(
                     final_return_mean=float(finals.mean()),
                     final_return_std=float(finals.std()),
+                    last_tenth_mean=float(np.mean(last_tenth)),
                     env_steps=int(np.mean([c["env_steps"][-1] for c in curves])),
                     wall_clock_s=float(np.mean([c["wall_clock_s"][-1] for c in curves])),
                 )
@@ -668,6 +675,7 @@ SUMMARY_COLUMNS = (
     "seeds",
     "final_return_mean",
     "final_return_std",
+    "last_tenth_mean",
     "env_steps",
     "wall_clock_s",
     "oracle_return",
@@ -682,15 +690,17 @@ def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
         for row in rows:
             writer.writerow({k: row.get(k, "") for k in SUMMARY_COLUMNS})
     lines = [
-        "| env | algo | split | seeds | final return (mean ± std) | optimal | env steps | wall-clock |",
-        "|---|---|---|---|---|---|---|---|",
+        "| env | algo | split | seeds | final return (mean ± std) | mean over the last tenth | optimal | env steps "
+        "| wall-clock |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         ret = f"{row['final_return_mean']:.3f} ± {row['final_return_std']:.3f}" if row["seeds"] else "-"
+        last_tenth = f"{row['last_tenth_mean']:.3f}" if row["seeds"] else "-"
         optimal = f"{row['oracle_return']:.3f}" if "oracle_return" in row else "-"
         steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
         clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
-        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, optimal, steps, clock]
+        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, steps, clock]
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
     (out / "summary.md").write_text(table)

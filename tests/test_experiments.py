@@ -234,3 +234,21 @@ def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_p
     assert record["status"] == "done"
     assert json.loads(run.info_path(out).read_text())["resumed_from"] is None
     assert load_curve(run.curve_path(out))["env_steps"].tolist() == [0, 100, 200]
+
+
+def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluation(tmp_path):
+    env = EnvSpec.parse("MetaBandit-v0")
+    finals = {0: [0.0, 0.2, 0.6, 0.8], 1: [0.0, 0.4, 1.0, 0.0]}  # at env steps 0, 50, 90, 100
+    for seed, values in finals.items():
+        path = Run("dream", env, seed).curve_path(tmp_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(experiments.CURVE_COLUMNS)
+            writer.writerows([[step, 1.0, value, 0.0, 5.0] for step, value in zip((0, 50, 90, 100), values)])
+    runs = plan_runs(["dream"], [env], [0, 1])
+    (row,) = experiments.summarize(runs, RunConfig(), tmp_path)
+    assert row["final_return_mean"] == pytest.approx(0.4) and row["final_return_std"] == pytest.approx(0.4)
+    assert row["last_tenth_mean"] == pytest.approx(np.mean([(0.6 + 0.8) / 2, (1.0 + 0.0) / 2]))
+    table = experiments.write_summary([row], tmp_path)
+    assert "| MetaBandit-v0 | dream | test | 2 | 0.400 ± 0.400 | 0.600 | - | 100 |" in table
