@@ -512,7 +512,7 @@ def finished_runs(out: pathlib.Path) -> List[Run]:
             run = Run(info["algo"], EnvSpec(info["env"], tuple(sorted(kwargs.items()))), int(info["seed"]))
         except (ValueError, KeyError, TypeError, AttributeError):
             continue  # not a run's record (an oracle's, say)
-        if run.info_path(out) == path and run.curve_path(out).exists():
+        if run.info_path(out) == path and any(run.curve_path(out, split).exists() for split in SPLITS):
             found.append(run)
     order = {algo: k for k, algo in enumerate(ALGOS)}
     return sorted(found, key=lambda r: (r.env.tag, order.get(r.algo, len(order)), r.seed))

@@ -252,3 +252,15 @@ def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluatio
     assert row["last_tenth_mean"] == pytest.approx(np.mean([(0.6 + 0.8) / 2, (1.0 + 0.0) / 2]))
     table = experiments.write_summary([row], tmp_path)
     assert "| MetaBandit-v0 | dream | test | 2 | 0.400 ± 0.400 | 0.600 | - | 100 |" in table
+
+
+def test_finished_runs_are_found_from_their_records_whatever_split_they_evaluated(tmp_path):
+    train_only = Run("rl2dqn", EnvSpec.parse("MetaBus-v0:variant=map"), 3)
+    unfinished = Run("dream", EnvSpec.parse("MetaBus-v0"), 0)  # a record without any curve
+    for run in (train_only, unfinished):
+        run.info_path(tmp_path).parent.mkdir(parents=True, exist_ok=True)
+        record = {"algo": run.algo, "env": run.env.env_id, "env_kwargs": run.env.env_kwargs, "seed": run.seed}
+        run.info_path(tmp_path).write_text(json.dumps(record))
+    train_only.curve_path(tmp_path, "train").write_text("env_steps,wall_clock_s,mean,ci,exploration_length\n")
+    (tmp_path / "MetaBus-v0" / "oracle_test.json").write_text(json.dumps({"mean": 0.8}))
+    assert experiments.finished_runs(tmp_path) == [train_only]
