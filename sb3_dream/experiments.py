@@ -18,6 +18,13 @@ A complete run keeps its last checkpoint (at its final step), so the same comman
 ``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
 starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
 
+**Going on with other settings.** ``--init-from DIR`` starts each run that has no checkpoint of its
+own from the kept final checkpoint of the same run (algorithm, env, seed) under ``DIR``, with this
+command's preset and overrides applied to the loaded model (SB3's ``load(**kwargs)``; the networks,
+``policy_kwargs`` included, must stay the same). Its learning curve and wall-clock carry over, so
+the new run's curve starts where the parent's ended: e.g. a run made to 1M steps with one target
+sync interval goes on to 1.2M with another, into its own ``--out``.
+
 **Outputs** under ``--out``::
 
     <env>/<algo>_seed<k>.csv          learning curve on the held-out split (--eval-splits test)
@@ -172,6 +179,7 @@ class RunConfig:
     checkpoint_freq: int = 0
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
+    init_from: str = ""
 
     def __post_init__(self) -> None:
         for name in ("steps", "n_envs", "eval_freq", "eval_trials", "threads"):
@@ -199,6 +207,8 @@ class RunConfig:
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
         data["eval_splits"] = list(self.eval_splits)
+        if not self.init_from:
+            data.pop("init_from")  # records made before the option compare equal
         return data
 
 
@@ -248,16 +258,68 @@ def algorithm_class(algo: str) -> type:
     raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ALGOS))}")
 
 
-def make_model(algo: str, env: Any, config: RunConfig, seed: int) -> Any:
-    """The model of ``algo`` on ``env`` with the preset and the per-algorithm overrides of ``config``."""
-    cls = algorithm_class(algo)
+def algorithm_kwargs(algo: str, config: RunConfig) -> Dict[str, Any]:
+    """The constructor arguments of ``algo`` that ``config`` sets: its preset, then its overrides."""
     if algo == "rl2dqn":
-        kwargs = {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
-        return cls(env, seed=seed, device=config.device, **kwargs)
+        return {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
     from sb3_dream.dream.presets import PRESETS
 
-    kwargs = {**PRESETS[config.preset], **dict(config.dream_kwargs)}
-    return cls(env, seed=seed, device=config.device, bottleneck=algo == "dream", **kwargs)
+    return {**PRESETS[config.preset], **dict(config.dream_kwargs), "bottleneck": algo == "dream"}
+
+
+def make_model(algo: str, env: Any, config: RunConfig, seed: int) -> Any:
+    """The model of ``algo`` on ``env`` with the preset and the per-algorithm overrides of ``config``."""
+    return algorithm_class(algo)(env, seed=seed, device=config.device, **algorithm_kwargs(algo, config))
+
+
+def load_with_overrides(algo: str, path: pathlib.Path, env: Any, config: RunConfig) -> Any:
+    """``algo``'s model saved at ``path``, with the hyperparameters that ``config`` sets to other
+    values than the saved ones (set before the model is set up, as SB3's ``load(**kwargs)`` does).
+
+    Only plain saved values (numbers, flags, strings) can change; the networks cannot.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    saved, _, _ = load_from_zip_file(path, load_data=True, device="cpu")
+    wanted = algorithm_kwargs(algo, config)
+    changed: Dict[str, Any] = {}
+    for key, value in wanted.items():
+        if key == "policy_kwargs":
+            same = json.dumps(value, default=str) == json.dumps(saved.get(key), default=str)
+            if not same:
+                raise ValueError(f"policy_kwargs={value!r} differs from the checkpoint's {saved.get(key)!r}")
+        elif key not in saved or not isinstance(saved[key], (bool, int, float, str, type(None))):
+            raise ValueError(f"{key} cannot be changed when going on from a checkpoint")
+        elif saved[key] != value:
+            changed[key] = value
+    return algorithm_class(algo).load(path, env=env, device=config.device, **changed)
+
+
+def init_checkpoint(run: Run, config: RunConfig) -> Tuple[pathlib.Path, Dict[str, Any]]:
+    """The folder and record of the checkpoint that ``--init-from`` starts ``run`` from.
+
+    It must be the same run's kept checkpoint, made with the same evaluation settings, so that the
+    learning curve goes on comparably; anything else is an error that names what differs.
+    """
+    parent = Checkpointer(run, config, pathlib.Path(config.init_from))
+    record = parent._record()
+    if record is None or not (parent.folder / record.get("model", "")).is_file():
+        raise FileNotFoundError(
+            f"init_from={config.init_from!r}: no checkpoint of {run.name} at {parent.path} (the parent run "
+            "needs --checkpoint-freq; a complete run keeps its final checkpoint)"
+        )
+    wanted = json.loads(json.dumps(config.settings(run.algo), default=str))
+    recorded = dict(record.get("settings", {}))
+    same = ("n_envs", "eval_freq", "eval_trials", "eval_splits")
+    changed = sorted(key for key in same if recorded.get(key) != wanted[key])
+    if changed:
+        raise ValueError(f"init_from={config.init_from!r}: {run.name} was made with other {', '.join(changed)}")
+    if int(record["env_steps"]) >= config.steps:
+        raise ValueError(
+            f"init_from={config.init_from!r}: {run.name} is already at {record['env_steps']} env steps; "
+            f"steps must be larger, got {config.steps}"
+        )
+    return parent.folder, record
 
 
 def _make_progress_callback(tag: str, **kwargs: Any) -> Any:
@@ -397,17 +459,25 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             path.unlink(missing_ok=True)  # an interrupted run starts over
 
     tag = f"{run.algo} {run.env.label} seed {run.seed}"
+    init_from = None
+    if resume is None and config.init_from:
+        folder_from, resume = init_checkpoint(run, config)
+        init_from = {"out": config.init_from, "env_steps": int(resume["env_steps"])}
     env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
     if resume is None:
         model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
     else:
-        model = algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
-        model.load_replay_buffer(checkpointer.folder / resume["replay_buffer"])
+        if init_from is None:
+            model = algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
+        else:
+            model = load_with_overrides(run.algo, folder_from / resume["model"], env, config)
+        model.load_replay_buffer((checkpointer.folder if init_from is None else folder_from) / resume["replay_buffer"])
         # make_vec_env seeded the envs as at step 0: without a seed of its own, the resumed run
         # would draw the same problems and instructions again, in the same order.
         model.env.seed(run.seed + model.num_timesteps)
         seconds_before = float(resume["train_seconds"])
-        print(f"[{tag}] resuming from its checkpoint at {model.num_timesteps} env steps", flush=True)
+        what = "its checkpoint" if init_from is None else f"the checkpoint under {config.init_from}"
+        print(f"[{tag}] going on from {what} at {model.num_timesteps} env steps", flush=True)
     callbacks = [
         _make_progress_callback(
             tag if len(config.eval_splits) == 1 else f"{tag} {split}",
@@ -452,7 +522,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         "seed": run.seed,
         "settings": config.settings(run.algo),
         "train_seconds": seconds,
-        "resumed_from": None if resume is None else resume["env_steps"],
+        "resumed_from": None if resume is None or init_from is not None else resume["env_steps"],
+        "init_from": init_from,
         "final": finals,
     }
     if run.algo in ("dream", "dream_no_bottleneck"):
@@ -791,6 +862,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="save model and replay buffers at least every N env steps (at evaluations) and resume from them; 0: off",
     )
+    parser.add_argument(
+        "--init-from",
+        default="",
+        metavar="DIR",
+        help="start each run from the same run's final checkpoint under DIR, with this command's overrides",
+    )
     parser.add_argument("--out", default="results/experiments")
     parser.add_argument("--force", action="store_true", help="redo finished runs")
     parser.add_argument("--no-plot", action="store_true", help="skip the figure")
@@ -821,6 +898,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             checkpoint_freq=args.checkpoint_freq,
             dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
             rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
+            init_from=args.init_from,
         )
         runs = plan_runs(args.algos, [EnvSpec.parse(e) for e in args.envs], args.seeds)
         if args.jobs is not None and args.jobs < 1:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 
 import numpy as np
@@ -234,6 +235,43 @@ def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_p
     assert record["status"] == "done"
     assert json.loads(run.info_path(out).read_text())["resumed_from"] is None
     assert load_curve(run.curve_path(out))["env_steps"].tolist() == [0, 100, 200]
+
+
+def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_path):
+    from sb3_dream.dream import DREAM
+
+    parent_out, out = tmp_path / "parent", tmp_path / "child"
+    kwargs = tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items()))
+    run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
+    parent = RunConfig(steps=200, eval_freq=100, eval_trials=2, checkpoint_freq=100, dream_kwargs=kwargs)
+    experiments.run_experiments([run], parent, parent_out, jobs=1)
+    parent_curve = load_curve(run.curve_path(parent_out))
+
+    overrides = tuple(sorted({**dict(kwargs), "target_update_interval": 7, "reward_penalty": 0.1}.items()))
+    child = dataclasses.replace(
+        parent, steps=300, dream_kwargs=overrides, init_from=str(parent_out), save_models=True
+    )
+    (record,) = experiments.run_experiments([run], child, out, jobs=1)
+    assert record["status"] == "done"
+    curve = load_curve(run.curve_path(out))
+    assert curve["env_steps"].tolist() == [0, 100, 200, 300]  # the parent's rows, then its own
+    assert curve["mean"][:3].tolist() == parent_curve["mean"].tolist()
+    info = json.loads(run.info_path(out).read_text())
+    assert info["init_from"] == {"out": str(parent_out), "env_steps": 200} and info["resumed_from"] is None
+    assert info["settings"]["init_from"] == str(parent_out)
+    model = DREAM.load(run.model_path(out))
+    assert model.num_timesteps == 300 and model.target_update_interval == 7 and model.reward_penalty == 0.1
+    # The parent is left as it was.
+    assert load_curve(run.curve_path(parent_out))["env_steps"].tolist() == [0, 100, 200]
+
+    # What cannot go on: other networks, other evaluation settings, no parent checkpoint.
+    wide = tuple(sorted({**dict(kwargs), "policy_kwargs": {"execution_hidden_sizes": (32,)}}.items()))
+    with pytest.raises(ValueError, match="policy_kwargs"):
+        experiments.run_one(run, dataclasses.replace(child, dream_kwargs=wide), tmp_path / "wide")
+    with pytest.raises(ValueError, match="other eval_trials"):
+        experiments.run_one(run, dataclasses.replace(child, eval_trials=3), tmp_path / "trials")
+    with pytest.raises(FileNotFoundError, match="no checkpoint of dream_seed1"):
+        experiments.run_one(Run("dream", run.env, 1), child, tmp_path / "seed1")
 
 
 def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluation(tmp_path):
