@@ -285,9 +285,11 @@ def load_with_overrides(algo: str, path: pathlib.Path, env: Any, config: RunConf
     changed: Dict[str, Any] = {}
     for key, value in wanted.items():
         if key == "policy_kwargs":
-            same = json.dumps(value, default=str) == json.dumps(saved.get(key), default=str)
-            if not same:
-                raise ValueError(f"policy_kwargs={value!r} differs from the checkpoint's {saved.get(key)!r}")
+            # The saved ones also hold what the algorithm derived from the env: compare the given keys.
+            stored = saved.get(key) or {}
+            given = {k: stored.get(k) for k in value}
+            if json.dumps(value, default=str) != json.dumps(given, default=str):
+                raise ValueError(f"policy_kwargs={value!r} differs from the checkpoint's {given!r}")
         elif key not in saved or not isinstance(saved[key], (bool, int, float, str, type(None))):
             raise ValueError(f"{key} cannot be changed when going on from a checkpoint")
         elif saved[key] != value:

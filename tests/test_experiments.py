@@ -241,7 +241,9 @@ def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_
     from sb3_dream.dream import DREAM
 
     parent_out, out = tmp_path / "parent", tmp_path / "child"
-    kwargs = tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items()))
+    # policy_kwargs parsed as on the command line: the saved ones also hold what DREAM derived.
+    given = TINY_DREAM + ["policy_kwargs={'execution_hidden_sizes':(16,)}"]
+    kwargs = tuple(sorted(parse_kwargs(given, "dream").items()))
     run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
     parent = RunConfig(steps=200, eval_freq=100, eval_trials=2, checkpoint_freq=100, dream_kwargs=kwargs)
     experiments.run_experiments([run], parent, parent_out, jobs=1)
