@@ -341,7 +341,16 @@ class BusExplorationReport:
             parts.append(f"map read {self.read_map.mean():.0%}")
         parts.append(f"exploration length {self.exploration_lengths.mean():.1f}")
         parts.append(f"execution return {self.execution_returns.mean():.3f}")
-        return ", ".join(parts)
+        by_routes = "; ".join(
+            f"{k}: {mean:.3f} ({n} trials)" for k, (n, mean) in self.returns_by_colored_routes().items()
+        )
+        return ", ".join(parts) + f"; execution return by colored routes seen: {by_routes}"
+
+    def returns_by_colored_routes(self) -> Dict[int, Tuple[int, float]]:
+        """Number of trials and mean execution return for each number of colored routes seen (only
+        the numbers that occur): what the exploration's coverage is worth to the execution policy."""
+        groups = {int(k): self.execution_returns[self.colored_routes == k] for k in np.unique(self.colored_routes)}
+        return {k: (len(returns), float(returns.mean())) for k, returns in groups.items()}
 
 
 class _ExplorationRecorder(ScriptedAgent):

@@ -31,6 +31,7 @@ from dream_envs.bus import (
     RIGHT,
     START,
     UP,
+    BusExplorationReport,
     MetaBusEnv,
     exploration_report,
 )
@@ -385,9 +386,26 @@ def test_exploration_report_of_the_oracle_matches_figure_7():
     assert on_map.exploration_lengths.tolist() == [5] * 5
     assert distracting.summary() == (
         "colored routes seen 3.00 (trials with 0..4: [0, 0, 0, 12, 0]), gray routes 0.00, "
-        "exploration length 11.0, execution return 0.800"
+        "exploration length 11.0, execution return 0.800; execution return by colored routes seen: 3: 0.800 (12 trials)"
     )
     assert "map read 100%, exploration length 5.0" in on_map.summary() and "gray" not in on_map.summary()
+
+
+def test_exploration_report_gives_the_execution_return_for_each_coverage():
+    report = BusExplorationReport(
+        colored_routes=np.array([2, 3, 2, 4, 3]),
+        gray_routes=np.zeros(5, dtype=int),
+        read_map=np.zeros(5, dtype=bool),
+        exploration_lengths=np.full(5, 20),
+        execution_returns=np.array([-2.0, 0.8, 0.8, 0.8, 0.3]),
+    )
+    by_routes = report.returns_by_colored_routes()
+    assert list(by_routes) == [2, 3, 4]
+    assert by_routes[2] == (2, pytest.approx(-0.6)) and by_routes[3] == (2, pytest.approx(0.55))
+    assert by_routes[4] == (1, pytest.approx(0.8))
+    assert report.summary().endswith(
+        "by colored routes seen: 2: -0.600 (2 trials); 3: 0.550 (2 trials); 4: 0.800 (1 trials)"
+    )
 
 
 def test_exploration_report_counts_each_route_once_from_either_end():
