@@ -274,6 +274,49 @@ def test_execution_body_is_an_option(tmp_path):
             DREAM("MetaBandit-v0", policy_kwargs=dict(execution_hidden_sizes=bad))
 
 
+def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_episode(tmp_path):
+    starts = dict(exploration_learning_starts=5, execution_learning_starts=5)
+    for n_envs in (1, 2):
+        env = make_vec_env("MetaBus-v0", n_envs=n_envs, seed=0, env_kwargs={"n_exec_episodes": 2})
+        model = DREAM(env, seed=0, policy_kwargs=dict(execution_time_input=True), **{**FAST, **starts})
+        assert model.policy.execution_q.time_embed.num_embeddings == 20 + 1  # steps 0 .. horizon
+        model.learn(400)
+        assert model._n_updates > 0
+        buf = model.replay_buffer.execution
+        states, steps, dones = buf.states[: len(buf)], buf.steps[: len(buf)], buf.dones[: len(buf)]
+        # Every execution episode starts at (4, 4) with step 0, two per trial.
+        assert (states[steps == 0][:, :2] == [4, 4]).all() and 1 < steps.max() < 20
+        assert int((steps == 0).sum()) >= 2 * model._episode_num
+        if n_envs == 1:  # one env's rows in order: the step counts up and restarts after each end
+            assert (steps[1:] == np.where(dones[:-1] == 1, 0, steps[:-1] + 1)).all()
+    # The step changes Q: a greedy execution policy need not repeat itself on a second visit.
+    q = model.policy.execution_q
+    x = (th.tensor([[4, 5, 1]]), th.tensor([[1]]), th.zeros(1, 64))
+    assert not th.allclose(q(*x, th.tensor([0])), q(*x, th.tensor([3])))
+    with pytest.raises(ValueError, match="pass steps"):
+        q(*x)
+    with pytest.raises(ValueError, match="episode_start"):
+        obs = {k: v for k, v in gym.make("MetaBus-v0").reset(seed=0)[0].items() if k != "episode_start"}
+        model.predict(obs)
+    model.save(tmp_path / "clock.zip")
+    loaded = DREAM.load(tmp_path / "clock.zip")
+    assert loaded.policy.execution_time_input and loaded.policy.execution_q.time_embed is not None
+    assert DREAM("MetaBandit-v0").policy.execution_q.time_embed is None  # the paper's network
+    with pytest.raises(ValueError, match="execution_time_input"):
+        DREAM("MetaBandit-v0", policy_kwargs=dict(execution_time_input="yes"))
+
+
+def test_execution_buffers_saved_before_the_step_was_stored_load_with_step_zero():
+    model = DREAM("MetaBus-v0", seed=0, **FAST)
+    model.learn(100)
+    buf = model.replay_buffer.execution
+    saved = {k: v for k, v in buf.__dict__.items() if k != "steps"}  # what such a pickle holds
+    restored = type(buf).__new__(type(buf))
+    restored.__setstate__(saved)  # as pickle.load does
+    assert restored.steps.shape == buf.actions.shape and not restored.steps.any()
+    assert restored.sample(4, model.replay_buffer.exploration, np.random.default_rng(0)).steps.tolist() == [0] * 4
+
+
 def test_bad_input():
     with pytest.raises(TypeError, match="Dict observation"):
         DREAM("CartPole-v1")

@@ -37,6 +37,7 @@ class ExecutionBatch(NamedTuple):
     next_states: th.Tensor
     dones: th.Tensor  # [B] 1.0 where s' is terminal (not a time limit)
     slots: np.ndarray  # [B] the exploration-buffer slot of each transition's trial
+    steps: th.Tensor  # [B] the step of s within its execution episode (s' is at steps + 1)
 
 
 def _state_dtype(space: spaces.Space) -> np.dtype:
@@ -118,7 +119,14 @@ class ExecutionBuffer:
         self.dones = np.zeros(capacity, dtype=np.float32)
         self.slots = np.zeros(capacity, dtype=np.int64)
         self.generations = np.zeros(capacity, dtype=np.int64)
+        self.steps = np.zeros(capacity, dtype=np.int64)
         self.pos, self.full = 0, False
+
+    def __setstate__(self, state: Dict[str, object]) -> None:
+        # Buffers pickled before the execution step was stored: all steps unknown, taken as 0.
+        self.__dict__.update(state)
+        if "steps" not in state:
+            self.steps = np.zeros(len(self.actions), dtype=np.int64)
 
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
@@ -151,6 +159,7 @@ class ExecutionBuffer:
             next_states=to(self.next_states[idx]),
             dones=to(self.dones[idx]),
             slots=self.slots[idx],
+            steps=to(self.steps[idx]),
         )
 
 

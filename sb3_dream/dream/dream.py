@@ -68,6 +68,7 @@ class TrialState:
     length: np.ndarray  # [n] exploration steps taken
     z: np.ndarray  # [n, z_dim] the trial's z for execution (valid where z_ready)
     z_ready: np.ndarray  # [n] bool
+    execution_step: np.ndarray  # [n] the step within the current execution episode
 
     def reset(self, idx: np.ndarray) -> None:
         """Forget the trials of envs ``idx``: a new trial starts there."""
@@ -75,13 +76,23 @@ class TrialState:
         self.hidden[1][:, idx] = 0.0
         self.length[idx] = 0
         self.z_ready[idx] = False
+        self.execution_step[idx] = 0
         self.prev_actions[idx] = 0
         self.prev_rewards[idx] = 0.0
 
     def as_tuple(self) -> Tuple[np.ndarray, ...]:
         h, c = (t.detach().cpu().numpy() for t in self.hidden)
         return (
-            h, c, self.states, self.actions, self.prev_actions, self.prev_rewards, self.length, self.z, self.z_ready
+            h,
+            c,
+            self.states,
+            self.actions,
+            self.prev_actions,
+            self.prev_rewards,
+            self.length,
+            self.z,
+            self.z_ready,
+            self.execution_step,
         )
 
     @classmethod
@@ -264,7 +275,12 @@ class DREAM(TrialOffPolicyAlgorithm):
         )
         self._rng = np.random.default_rng(self.seed)
         # A new dict: the caller's policy_kwargs stay as given (the experiment runner compares them).
-        self.policy_kwargs = {**self.policy_kwargs, "problem_nvec": self.problem_nvec, "z_dim": self.z_dim}
+        self.policy_kwargs = {
+            **self.policy_kwargs,
+            "problem_nvec": self.problem_nvec,
+            "z_dim": self.z_dim,
+            "horizon": self.exploration_horizon,
+        }
         self.policy = self.policy_class(
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         )
@@ -310,6 +326,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             length=np.zeros(n_envs, dtype=np.int64),
             z=np.zeros((n_envs, self.z_dim), dtype=np.float32),
             z_ready=np.zeros(n_envs, dtype=bool),
+            execution_step=np.zeros(n_envs, dtype=np.int64),
         )
 
     # ------------------------------------------------------------------ epsilons
@@ -383,10 +400,14 @@ class DREAM(TrialOffPolicyAlgorithm):
                 # use g of the trajectory without its last transition.
                 state.z[missing] = self._decode(state, missing, np.maximum(state.length[missing] - 1, 0))
                 state.z_ready[missing] = True
+            if "episode_start" in obs:  # the step within the execution episode
+                first = np.asarray(obs["episode_start"]).reshape(n)[execute].astype(bool)
+                state.execution_step[execute] = np.where(first, 0, state.execution_step[execute] + 1)
             q = self.policy.execution_q(
                 self._obs_tensor(obs["obs"][execute]),
                 self._obs_tensor(obs["instruction"][execute]),
                 self._obs_tensor(state.z[execute]),
+                self._obs_tensor(state.execution_step[execute]),
             )
             chosen = q.argmax(dim=-1).cpu().numpy()
             actions[execute] = self._epsilon_greedy(chosen, execution_eps, n_actions)
@@ -466,8 +487,9 @@ class DREAM(TrialOffPolicyAlgorithm):
         return states
 
     def _batch_observation(self, observation: Dict[str, Any]) -> Tuple[Dict[str, np.ndarray], bool]:
-        if not isinstance(observation, dict) or any(k not in observation for k in REQUIRED_KEYS):
-            raise ValueError(f"observation must be a dict with the trial keys {REQUIRED_KEYS}")
+        required = REQUIRED_KEYS + (("episode_start",) if self.policy.execution_time_input else ())
+        if not isinstance(observation, dict) or any(k not in observation for k in required):
+            raise ValueError(f"observation must be a dict with the trial keys {required}")
         obs = {k: np.asarray(v) for k, v in observation.items()}
         obs["obs"] = self._model_states(obs["obs"])
         vectorized = obs["obs"].shape != self.observation_space["obs"].shape
@@ -594,6 +616,7 @@ class DREAM(TrialOffPolicyAlgorithm):
                     "dones": terminal.astype(np.float32),
                     "slots": self._slots[executed],
                     "generations": self._generations[executed],
+                    "steps": state.execution_step[executed],
                 }
             )
 
@@ -681,16 +704,16 @@ class DREAM(TrialOffPolicyAlgorithm):
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
         actions, rewards, dones = exe.actions.repeat(2), exe.rewards.repeat(2), exe.dones.repeat(2)
-        embedding = policy.execution_q.embed(exe.states, exe.instructions).repeat(2, 1)
+        embedding = policy.execution_q.embed(exe.states, exe.instructions, exe.steps).repeat(2, 1)
         q = policy.execution_q.q_values(embedding, z).gather(1, actions[:, None]).squeeze(1)
         with th.no_grad():
             next_online = policy.execution_q.q_values(
-                policy.execution_q.embed(exe.next_states, exe.instructions).repeat(2, 1), z
+                policy.execution_q.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1), z
             )
             z_g_target = policy.decoder_target(traj.states, traj.actions)[rows, lengths]
             z_f_target = policy.encoder_target(traj.problem_features)
             next_target = policy.execution_q_target.q_values(
-                policy.execution_q_target.embed(exe.next_states, exe.instructions).repeat(2, 1),
+                policy.execution_q_target.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1),
                 th.cat([z_g_target, z_f_target]),
             )
             best = next_online.argmax(dim=1, keepdim=True)

@@ -3,7 +3,8 @@
 * :class:`ProblemEncoder` f_psi: problem ID -> z (the mean of F(z | T) = N(f(T), rho^2 I)).
 * :class:`TrajectoryDecoder` g_omega: exploration trajectory tau^exp -> z, one fused LSTM pass
   giving g(tau_:t) for every prefix t = 0 .. T.
-* :class:`ExecutionQNetwork` Q^exe(s, i, z): feed-forward dueling Q-network.
+* :class:`ExecutionQNetwork` Q^exe(s, i, z): feed-forward dueling Q-network (optionally also given
+  the step index within the execution episode).
 * :class:`ExplorationQNetwork` Q^exp(s_t, tau_:t): recurrent dueling Q-network over its own history.
 
 :class:`DreamPolicy` holds them and their target copies.
@@ -78,10 +79,24 @@ class ExecutionQNetwork(nn.Module):
     ``hidden_sizes`` are the layers between the concatenation and the dueling head: the paper's
     ``(64,)`` by default; wider or deeper bodies are an option (the one layer is where the
     instruction and z must interact to pick, e.g., the right bus).
+
+    ``time_steps`` > 0 (an option; the paper's network has no such input) adds e(t), a 16-d
+    embedding of the step t within the execution episode (clipped to ``time_steps``), to
+    [e(s); e(i)]. A feed-forward policy that revisits a state is caught in a loop until the horizon
+    ends the episode; with t it can act differently on its second visit, e.g. try another bus
+    after riding back from a wrong one when z leaves two buses possible. It also makes the
+    horizon-terminal TD targets Markov (the grid worlds' states hold no clock).
     """
 
+    TIME_EMBED_DIM = 16
+
     def __init__(
-        self, observation_space: spaces.Dict, n_actions: int, z_dim: int = 64, hidden_sizes: Sequence[int] = (64,)
+        self,
+        observation_space: spaces.Dict,
+        n_actions: int,
+        z_dim: int = 64,
+        hidden_sizes: Sequence[int] = (64,),
+        time_steps: int = 0,
     ) -> None:
         super().__init__()
         positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
@@ -92,18 +107,31 @@ class ExecutionQNetwork(nn.Module):
         self.state_embed = make_state_embedder(observation_space["obs"])
         self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec)
         in_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
+        self.time_steps = int(time_steps)
+        self.time_embed: Optional[nn.Embedding] = None
+        if self.time_steps > 0:
+            self.time_embed = nn.Embedding(self.time_steps + 1, self.TIME_EMBED_DIM)
+            in_dim += self.TIME_EMBED_DIM
         self.body, width = relu_mlp(in_dim, [int(h) for h in hidden_sizes])
         self.head = DuelingHead(width, n_actions)
 
-    def embed(self, states: th.Tensor, instructions: th.Tensor) -> th.Tensor:
-        """[e(s); e(i)]: computed once and shared by the rows that differ only in z."""
-        return th.cat([self.state_embed(states), self.instruction_embed(instructions)], dim=-1)
+    def embed(self, states: th.Tensor, instructions: th.Tensor, steps: Optional[th.Tensor] = None) -> th.Tensor:
+        """[e(s); e(i)] (and e(t) with ``time_steps``): computed once and shared by the rows that
+        differ only in z."""
+        parts = [self.state_embed(states), self.instruction_embed(instructions)]
+        if self.time_embed is not None:
+            if steps is None:
+                raise ValueError("this execution Q-network takes the execution step: pass steps")
+            parts.append(self.time_embed(steps.long().clamp(0, self.time_steps)))
+        return th.cat(parts, dim=-1)
 
     def q_values(self, embedding: th.Tensor, z: th.Tensor) -> th.Tensor:
         return self.head(self.body(th.cat([embedding, z], dim=-1)))
 
-    def forward(self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor) -> th.Tensor:
-        return self.q_values(self.embed(states, instructions), z)
+    def forward(
+        self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor, steps: Optional[th.Tensor] = None
+    ) -> th.Tensor:
+        return self.q_values(self.embed(states, instructions, steps), z)
 
 
 class ExplorationQNetwork(nn.Module):
@@ -142,8 +170,10 @@ class DreamPolicy(BasePolicy):
     Two optimizers: ``optimizer`` for the execution side (Q^exe, f, g: they share the execution
     losses) and ``exploration_optimizer`` for Q^exp (trained on rewards computed without gradient).
 
-    Options (``policy_kwargs``): ``z_dim``, and ``execution_hidden_sizes`` the layers of Q^exe's body
-    (the paper's ``(64,)``).
+    Options (``policy_kwargs``): ``z_dim``, ``execution_hidden_sizes`` the layers of Q^exe's body
+    (the paper's ``(64,)``), and ``execution_time_input`` (default False, the paper's network):
+    Q^exe also sees the step within the execution episode (see :class:`ExecutionQNetwork`).
+    ``horizon`` (the inner-episode horizon) is set by DREAM from the env.
     """
 
     def __init__(
@@ -154,6 +184,8 @@ class DreamPolicy(BasePolicy):
         problem_nvec: Optional[np.ndarray] = None,
         z_dim: int = 64,
         execution_hidden_sizes: Sequence[int] = (64,),
+        execution_time_input: bool = False,
+        horizon: Optional[int] = None,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
     ) -> None:
@@ -167,7 +199,13 @@ class DreamPolicy(BasePolicy):
         n_actions = int(action_space.n)
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
-        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, execution_hidden_sizes)
+        if not isinstance(execution_time_input, (bool, np.bool_)):
+            raise ValueError(f"execution_time_input must be True or False, got {execution_time_input!r}")
+        if execution_time_input and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
+            raise ValueError(f"execution_time_input needs the inner-episode horizon >= 1, got horizon={horizon!r}")
+        self.execution_time_input, self.horizon = bool(execution_time_input), horizon
+        time_steps = int(horizon) if execution_time_input else 0
+        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, execution_hidden_sizes, time_steps)
         self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)  # checked by the network
         self.exploration_q = ExplorationQNetwork(observation_space, n_actions)
         self.encoder_target = copy.deepcopy(self.encoder)
@@ -201,6 +239,8 @@ class DreamPolicy(BasePolicy):
             problem_nvec=self.problem_nvec,
             z_dim=self.z_dim,
             execution_hidden_sizes=self.execution_hidden_sizes,
+            execution_time_input=self.execution_time_input,
+            horizon=self.horizon,
             lr_schedule=self._dummy_schedule,
         )
         return data
