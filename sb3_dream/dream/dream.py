@@ -140,6 +140,10 @@ class DREAM(TrialOffPolicyAlgorithm):
         rewards are computed). The same computations and the same results as sequential updates
         (tested); faster when a second CPU core is free for this run, slower when it is not (for
         example several runs sharing the cores).
+    :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
+        Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also
+        sees the step within its episode, so a greedy policy need not repeat itself on a second
+        visit to a state; default False, the paper's network), ``z_dim``.
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
