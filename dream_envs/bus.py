@@ -322,7 +322,8 @@ class BusExplorationReport:
     exploration led to.
 
     A route counts as seen once the agent rides its bus from either end. Three colored routes
-    determine the fourth; the gray ones never help.
+    determine the fourth; the gray ones never help. An execution episode that misses the goal
+    (the horizon, or the end-episode action, ends it first) returns exactly ``-0.1 x horizon``.
     """
 
     colored_routes: np.ndarray  # [n_trials] 0..4
@@ -331,6 +332,7 @@ class BusExplorationReport:
     exploration_lengths: np.ndarray  # [n_trials]
     execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
     variant: str = "distracting"
+    goal_missed: Optional[np.ndarray] = None  # [n_trials] share of its execution episodes that missed the goal
 
     def summary(self) -> str:
         counts = np.bincount(self.colored_routes, minlength=len(COLORED_STOPS) + 1)
@@ -341,6 +343,8 @@ class BusExplorationReport:
             parts.append(f"map read {self.read_map.mean():.0%}")
         parts.append(f"exploration length {self.exploration_lengths.mean():.1f}")
         parts.append(f"execution return {self.execution_returns.mean():.3f}")
+        if self.goal_missed is not None:
+            parts.append(f"goal missed in {self.goal_missed.mean():.1%} of execution episodes")
         by_routes = "; ".join(
             f"{k}: {mean:.3f} ({n} trials)" for k, (n, mean) in self.returns_by_colored_routes().items()
         )
@@ -397,6 +401,7 @@ def exploration_report(
     if not isinstance(bus, MetaBusEnv):
         raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
     recorder = _ExplorationRecorder(agent)
+    missed_return = STEP_REWARD * bus.horizon  # every step's cost, no goal reward
     rows = []
     for result in play_trials(env, recorder, n_trials, seed, problem_ids):
         routes = bus.routes(int(result["problem_id"]))
@@ -409,10 +414,11 @@ def exploration_report(
                 recorder.read_map,
                 result["exploration_length"],
                 float(np.mean(result["execution_returns"])),
+                float(np.mean(np.isclose(result["execution_returns"], missed_return))),
             )
         )
-    colored, gray, read_map, lengths, returns = (np.array(column) for column in zip(*rows))
-    return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns, bus.variant)
+    colored, gray, read_map, lengths, returns, missed = (np.array(column) for column in zip(*rows))
+    return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns, bus.variant, missed)
 
 
 def _step_towards(pos: Cell, target: Cell) -> int:

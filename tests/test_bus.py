@@ -386,7 +386,8 @@ def test_exploration_report_of_the_oracle_matches_figure_7():
     assert on_map.exploration_lengths.tolist() == [5] * 5
     assert distracting.summary() == (
         "colored routes seen 3.00 (trials with 0..4: [0, 0, 0, 12, 0]), gray routes 0.00, "
-        "exploration length 11.0, execution return 0.800; execution return by colored routes seen: 3: 0.800 (12 trials)"
+        "exploration length 11.0, execution return 0.800, goal missed in 0.0% of execution episodes; "
+        "execution return by colored routes seen: 3: 0.800 (12 trials)"
     )
     assert "map read 100%, exploration length 5.0" in on_map.summary() and "gray" not in on_map.summary()
 
@@ -406,6 +407,16 @@ def test_exploration_report_gives_the_execution_return_for_each_coverage():
     assert report.summary().endswith(
         "by colored routes seen: 2: -0.600 (2 trials); 3: 0.550 (2 trials); 4: 0.800 (1 trials)"
     )
+
+    # An agent that never moves misses every goal: each execution episode returns -0.1 x horizon.
+    class Idle(ScriptedAgent):
+        def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+            return END_EPISODE if int(obs["phase"]) == EXPLORATION else NOOP
+
+    idle = exploration_report(gym.make("MetaBus-v0", horizon=5, n_exec_episodes=2), Idle(), 3)
+    assert idle.goal_missed is not None and idle.goal_missed.tolist() == [1.0] * 3
+    assert idle.execution_returns == pytest.approx([-0.5] * 3)
+    assert "goal missed in 100.0% of execution episodes" in idle.summary()
 
 
 def test_exploration_report_counts_each_route_once_from_either_end():
