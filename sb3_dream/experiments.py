@@ -461,19 +461,19 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             path.unlink(missing_ok=True)  # an interrupted run starts over
 
     tag = f"{run.algo} {run.env.label} seed {run.seed}"
-    init_from = None
+    init_from, resume_folder = None, checkpointer.folder
     if resume is None and config.init_from:
-        folder_from, resume = init_checkpoint(run, config)
+        resume_folder, resume = init_checkpoint(run, config)
         init_from = {"out": config.init_from, "env_steps": int(resume["env_steps"])}
     env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
     if resume is None:
         model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
     else:
         if init_from is None:
-            model = algorithm_class(run.algo).load(checkpointer.folder / resume["model"], env=env, device=config.device)
+            model = algorithm_class(run.algo).load(resume_folder / resume["model"], env=env, device=config.device)
         else:
-            model = load_with_overrides(run.algo, folder_from / resume["model"], env, config)
-        model.load_replay_buffer((checkpointer.folder if init_from is None else folder_from) / resume["replay_buffer"])
+            model = load_with_overrides(run.algo, resume_folder / resume["model"], env, config)
+        model.load_replay_buffer(resume_folder / resume["replay_buffer"])
         # make_vec_env seeded the envs as at step 0: without a seed of its own, the resumed run
         # would draw the same problems and instructions again, in the same order.
         model.env.seed(run.seed + model.num_timesteps)
