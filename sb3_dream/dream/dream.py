@@ -411,7 +411,7 @@ class DREAM(TrialOffPolicyAlgorithm):
                 self._obs_tensor(obs["obs"][execute]),
                 self._obs_tensor(obs["instruction"][execute]),
                 self._obs_tensor(state.z[execute]),
-                self._obs_tensor(state.execution_step[execute]),
+                self._obs_tensor(state.execution_step[execute]) if self.policy.execution_time_input else None,
             )
             chosen = q.argmax(dim=-1).cpu().numpy()
             actions[execute] = self._epsilon_greedy(chosen, execution_eps, n_actions)
