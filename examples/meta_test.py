@@ -113,7 +113,9 @@ def main() -> None:
         )
         print(
             f"  diagnosis: return with z = g(tau^exp) {d.return_g:.3f}, with z = f(T) {d.return_f:.3f}; "
-            f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f})"
+            f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
+            "variance of f explained by each problem feature: "
+            + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)
         )
 
 

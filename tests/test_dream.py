@@ -342,6 +342,21 @@ def test_dream_learns_the_bandit_that_needs_exploration():
     assert result.mean >= 0.9
 
 
+def test_f_variance_by_feature_splits_an_additive_code_between_its_parts():
+    from sb3_dream.dream import f_variance_by_feature
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(3, 4)), rng.normal(size=(5, 4))  # the code of each part's values
+    features = np.array([(i, j, 0) for i in range(3) for j in range(5)])  # a product; column 2 constant
+    f = a[features[:, 0]] + b[features[:, 1]] + 7.0
+    explained = f_variance_by_feature(f, features)
+    var = lambda x: float(((x - x.mean(0)) ** 2).sum(1).mean())  # noqa: E731
+    assert explained == pytest.approx([var(a), var(b), 0.0])
+    assert sum(explained) == pytest.approx(var(f))  # additive parts of a product add up
+    # a code that ignores a part leaves it nothing
+    assert f_variance_by_feature(a[features[:, 0]], features)[1] == pytest.approx(0.0, abs=1e-12)
+
+
 def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):
     from sb3_dream.dream import diagnose
 
@@ -356,6 +371,14 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     assert d.f_spread == pytest.approx(brute.sum() / (len(f) * (len(f) - 1)), rel=1e-4)
     f_ids = bus_model._encode(np.array(ids), noisy=False)
     assert d.f_norm_sq == pytest.approx(float((f_ids**2).sum(1).mean()), rel=1e-5)
+    # one entry per problem feature (colored permutation, four gray buses), each the variance of
+    # the mean code of the problems that share the feature's value
+    features = gym.make("MetaBus-v0").unwrapped.problem_feature_table()[split_ids]
+    assert len(d.f_variance_by_feature) == 5
+    for k, explained in enumerate(d.f_variance_by_feature):
+        means = {v: f[features[:, k] == v].mean(0) for v in np.unique(features[:, k])}
+        by_problem = np.stack([means[v] for v in features[:, k]]) - f.mean(0)
+        assert explained == pytest.approx(float((by_problem**2).sum(1).mean()), rel=1e-4)
 
     # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
     def perfect_decoder(state, idx, n):

@@ -6,7 +6,11 @@ problem ID (never available at meta-test, so this is a diagnostic, not an evalua
 * the **execution policy** alone: run it with z = f(T), the encoder's code of the true problem,
   instead of the decoder's g(tau^exp). Its return is what a perfect explorer and decoder would give;
 * **exploration and the decoder**: how far g(tau^exp) lands from f(T) (``decoder_error``), next to
-  how far apart the codes of different problems are (``f_spread``).
+  how far apart the codes of different problems are (``f_spread``);
+* **the encoder's content**: how much of f's variance over the split's problems each dimension of
+  the problem's representation explains (``f_variance_by_feature``). The information bottleneck
+  should leave none to the parts that do not matter for execution (MetaBus's gray buses); what is
+  left there, the exploration reward pays the explorer to find.
 
 ``return_f`` close to ``return_g`` and both low: execution is what limits the model.
 ``return_f`` well above ``return_g``: exploration (or the decoder) is. Both runs use the same
@@ -36,6 +40,7 @@ class DreamDiagnosis:
     decoder_error: float  # ||g(tau^exp) - f(T)||^2
     f_norm_sq: float  # ||f(T)||^2
     f_spread: float  # ||f(T) - f(T')||^2 over pairs of the split's problems
+    f_variance_by_feature: List[float]  # per problem-feature dimension, see f_variance_by_feature()
     exploration_length: float
     n_trials: int
 
@@ -57,6 +62,24 @@ class _DiagnosticAgent(DreamTrialAgent):
         self.g.append(self.state.z[0].copy())
         if self.z_source == "f":
             self.state.z[0] = self.f[k]
+
+
+def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
+    """The variance of the codes ``f`` [n, z] (summed over z) that each column of ``features``
+    [n, d] explains: the variance of the mean code of the problems that share that column's value.
+
+    For problems that are the product of independent parts (MetaBus: the colored permutation and
+    each gray bus), these add up to the total variance when f is additive over the parts.
+    """
+    centred = f - f.mean(axis=0)
+    shares = []
+    for column in features.T:
+        values, groups = np.unique(column, return_inverse=True)
+        means = np.zeros((len(values), f.shape[1]))
+        np.add.at(means, groups, centred)
+        means /= np.bincount(groups)[:, None]
+        shares.append(float((means[groups] ** 2).sum(axis=1).mean()))
+    return shares
 
 
 def diagnose(
@@ -89,6 +112,7 @@ def diagnose(
     for source in ("g", "f"):
         agents[source] = _DiagnosticAgent(model, problem_ids, source)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
+    features = trial_env.unwrapped.problem_feature_table()[split_ids]
     if isinstance(env, str):
         trial_env.close()
 
@@ -104,6 +128,7 @@ def diagnose(
         decoder_error=float(((g - f) ** 2).sum(axis=1).mean()),
         f_norm_sq=float((f**2).sum(axis=1).mean()),
         f_spread=float(pair_sum / max(1, n * (n - 1))),
+        f_variance_by_feature=f_variance_by_feature(f_split, features),
         exploration_length=float(results["g"].exploration_lengths.mean()),
         n_trials=n_trials,
     )
