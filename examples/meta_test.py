@@ -5,6 +5,7 @@
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --exhaustive
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --diagnose
     python examples/meta_test.py --model dream_metabus.zip --exploration
+    python examples/meta_test.py --model snapshots/dream_seed0_*_steps.zip --exploration  # one line each
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
@@ -21,7 +22,9 @@ decoder) or execution limits the model.
 Figure 7 shows it: colored and gray routes ridden, whether it read the map
 (:func:`dream_envs.bus.exploration_report`).
 
-The model's algorithm (DREAM or RL2DQN) is read from the saved file.
+The model's algorithm (DREAM or RL2DQN) is read from the saved file. Several ``--model`` files
+(e.g. the runner's ``--snapshot-freq`` snapshots of one run) are meta-tested on the same trials,
+in the order given, with the optimal and the random agent once.
 """
 
 from __future__ import annotations
@@ -57,7 +60,7 @@ def load_model(path: str, device: str = "cpu") -> Any:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", required=True, help="a saved DREAM or RL2DQN model (.zip)")
+    parser.add_argument("--model", required=True, nargs="+", help="saved DREAM or RL2DQN models (.zip)")
     parser.add_argument("--env", default="MetaBus-v0")
     parser.add_argument(
         "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map"
@@ -74,9 +77,10 @@ def main() -> None:
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, **env_kwargs)
     problem_ids = env.unwrapped.problem_ids(args.split) if args.exhaustive else None
-    model = load_model(args.model)
+    models = {path: load_model(path) for path in args.model}
+    names = {path: type(m).__name__ if len(models) == 1 else path for path, m in models.items()}
     agents = {
-        type(model).__name__: model,
+        **{names[path]: m for path, m in models.items()},
         "optimal (scripted)": dream_envs.make_oracle(env),
         "random": RandomAgent(env.action_space, seed=args.seed),
     }
@@ -106,17 +110,19 @@ def main() -> None:
     if args.diagnose:
         from sb3_dream.dream import DREAM, diagnose
 
-        if not isinstance(model, DREAM):
-            raise SystemExit(f"--diagnose needs a DREAM model, got {type(model).__name__}")
-        d = diagnose(  # one execution episode per trial
-            model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
-        )
-        print(
-            f"  diagnosis: return with z = g(tau^exp) {d.return_g:.3f}, with z = f(T) {d.return_f:.3f}; "
-            f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
-            "variance of f explained by each problem feature: "
-            + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)
-        )
+        for path, model in models.items():
+            if not isinstance(model, DREAM):
+                raise SystemExit(f"--diagnose needs DREAM models, got {type(model).__name__} ({path})")
+            d = diagnose(  # one execution episode per trial
+                model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
+            )
+            prefix = "" if len(models) == 1 else f"{path} "
+            print(
+                f"  {prefix}diagnosis: return with z = g(tau^exp) {d.return_g:.3f}, with z = f(T) {d.return_f:.3f}; "
+                f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
+                "variance of f explained by each problem feature: "
+                + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)
+            )
 
 
 if __name__ == "__main__":

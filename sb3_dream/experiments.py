@@ -34,6 +34,9 @@ sync interval goes on to 1.2M with another, into its own ``--out``.
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
     <env>/checkpoints/                each run's last checkpoint, with --checkpoint-freq
+    <env>/snapshots/                  the model every N env steps, with --snapshot-freq N (SB3's
+                                      CheckpointCallback: <algo>_seed<k>_<steps>_steps.zip, no
+                                      replay buffers), to meta-test how a policy changes
     summary.csv, summary.md           final return mean +- std over seeds, the mean over each run's
                                       last tenth of env steps, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
@@ -177,6 +180,7 @@ class RunConfig:
     device: str = "auto"
     save_models: bool = False
     checkpoint_freq: int = 0
+    snapshot_freq: int = 0
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
     init_from: str = ""
@@ -194,16 +198,17 @@ class RunConfig:
             raise ValueError(
                 f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}"
             )
-        freq = self.checkpoint_freq
-        if isinstance(freq, bool) or not isinstance(freq, int) or freq < 0:
-            raise ValueError(f"checkpoint_freq must be an integer >= 0 (0: no checkpoints), got {freq!r}")
+        for name in ("checkpoint_freq", "snapshot_freq"):
+            freq = getattr(self, name)
+            if isinstance(freq, bool) or not isinstance(freq, int) or freq < 0:
+                raise ValueError(f"{name} must be an integer >= 0 (0: off), got {freq!r}")
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        for key in ("threads", "device", "save_models", "checkpoint_freq", "dream_kwargs", "rl2dqn_kwargs"):
+        for key in ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq", "dream_kwargs", "rl2dqn_kwargs"):
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
         data["eval_splits"] = list(self.eval_splits)
@@ -500,6 +505,13 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     callback_list = list(callbacks)
     if config.checkpoint_freq:
         callback_list.append(_make_checkpoint_callback(checkpointer, callbacks, seconds_before))
+    if config.snapshot_freq:
+        from stable_baselines3.common.callbacks import CheckpointCallback
+
+        # save_freq counts calls, one per vec-env step of n_envs env steps
+        callback_list.append(
+            CheckpointCallback(max(config.snapshot_freq // config.n_envs, 1), str(folder / "snapshots"), run.name)
+        )
     start = time.perf_counter()
     model.learn(
         max(config.steps - model.num_timesteps, 0) if resume else config.steps,
@@ -865,6 +877,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="save model and replay buffers at least every N env steps (at evaluations) and resume from them; 0: off",
     )
     parser.add_argument(
+        "--snapshot-freq",
+        type=int,
+        default=0,
+        help="also save the model (no replay buffers) every N env steps under <env>/snapshots/; 0: off",
+    )
+    parser.add_argument(
         "--init-from",
         default="",
         metavar="DIR",
@@ -898,6 +916,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             device=args.device,
             save_models=args.save_models,
             checkpoint_freq=args.checkpoint_freq,
+            snapshot_freq=args.snapshot_freq,
             dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
             rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
             init_from=args.init_from,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import pathlib
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -94,6 +95,13 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert "optimal (scripted) exploring: colored routes seen 0.00" in out
     assert "map read 100%, exploration length 5.0, execution return 0.800" in out
     assert "DREAM exploring: colored routes seen" in out and "random exploring:" in out
+    # several models: one line each, named by their files, and one diagnosis each
+    copy = tmp_path / "copy.zip"
+    shutil.copy(model, copy)
+    out = run_example("meta_test.py", "--model", str(model), str(copy), *diagnose_args[2:], cwd=tmp_path)
+    for path in (model, copy):
+        assert f"{path}: execution return" in out and f"{path} diagnosis: return with z = g" in out
+    assert out.count("optimal (scripted): execution return") == 1
 
     meta_test = load_example("meta_test")
     assert type(meta_test.load_model(str(model))).__name__ == "DREAM"

@@ -45,6 +45,8 @@ def test_bad_settings_are_rejected():
         RunConfig(dream_kwargs=(("bottleneck", False),))
     with pytest.raises(ValueError, match="checkpoint_freq must be an integer >= 0"):
         RunConfig(checkpoint_freq=-1)
+    with pytest.raises(ValueError, match="snapshot_freq must be an integer >= 0"):
+        RunConfig(snapshot_freq=-1)
     with pytest.raises(ValueError, match="algo='ppo' is not valid"):
         experiments.algorithm_class("ppo")
     with pytest.raises(ValueError, match="algos=.*accepted values: 'dream', 'dream_no_bottleneck', 'rl2dqn'"):
@@ -128,7 +130,7 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
 def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path):
     out = tmp_path / "results"
     config = RunConfig(
-        steps=40, eval_freq=40, eval_trials=2, eval_splits=("test", "train"),
+        steps=40, eval_freq=40, eval_trials=2, eval_splits=("test", "train"), n_envs=2, snapshot_freq=16,
         dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
     )  # fmt: skip
     run = Run("dream_no_bottleneck", EnvSpec.parse("MetaBandit-v0:n_exec_episodes=2"), 3)
@@ -141,6 +143,11 @@ def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path
     np.testing.assert_array_equal(load_curve(run.curve_path(out, "test"))["env_steps"], [0, 40])
     assert run.curve_path(out, "train").name == "dream_no_bottleneck_seed3_train.csv"
     assert load_curve(run.curve_path(out, "train"))["env_steps"].tolist() == [0, 40]
+    # --snapshot-freq 16 with 2 envs: a model every 16 env steps, loadable, not part of the settings
+    snapshots = sorted(run.folder(out).glob("snapshots/*.zip"), key=lambda p: int(p.stem.split("_")[-2]))
+    assert [p.name for p in snapshots] == [f"dream_no_bottleneck_seed3_{k}_steps.zip" for k in (16, 32)]
+    assert experiments.algorithm_class("dream").load(snapshots[-1]).num_timesteps == 32
+    assert "snapshot_freq" not in config.settings("dream")
 
 
 @pytest.mark.parametrize("algo", ["dream", "rl2dqn"])
