@@ -208,7 +208,8 @@ class RunConfig:
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        for key in ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq", "dream_kwargs", "rl2dqn_kwargs"):
+        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq")
+        for key in (*unrecorded, "dream_kwargs", "rl2dqn_kwargs"):
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
         data["eval_splits"] = list(self.eval_splits)
