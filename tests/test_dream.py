@@ -306,6 +306,43 @@ def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_ep
         DREAM("MetaBandit-v0", policy_kwargs=dict(execution_time_input="yes"))
 
 
+def test_exploration_time_input_is_an_option_fed_the_step_within_the_exploration_episode(tmp_path):
+    starts = dict(exploration_learning_starts=5, execution_learning_starts=5)
+    env = make_vec_env("MetaBus-v0", n_envs=2, seed=0)
+    model = DREAM(env, seed=0, policy_kwargs=dict(exploration_time_input=True), **{**FAST, **starts})
+    q = model.policy.exploration_q
+    assert q.time_embed.num_embeddings == 20 + 1 and model.policy.execution_q.time_embed is None
+    seen = []  # the steps each call of the online exploration Q gets
+    q.register_forward_hook(lambda module, args, out: seen.append(args[4].cpu().numpy().copy()))
+    model.learn(400)
+    assert model._n_updates > 0
+    training = [s for s in seen if s.shape[1] > 1]
+    # training: each trajectory's states are steps 0 .. T
+    assert training and all((s == np.arange(s.shape[1])).all() for s in training)
+    # acting: the step of the current state, through a whole trial played with predict
+    seen.clear()
+    trial_env = gym.make("MetaBus-v0")
+    obs, state, n_explored = trial_env.reset(seed=1)[0], None, 0
+    while True:
+        n_explored += int(obs["phase"]) == 0
+        action, state = model.predict(obs, state, episode_start=np.array([obs["episode_start"]]))
+        obs, _, terminated, truncated, _ = trial_env.step(action)
+        if terminated or truncated:
+            break
+    assert n_explored >= 1 and [int(s[0, 0]) for s in seen] == list(range(n_explored))
+    # The step changes Q.
+    x = (th.tensor([[[4, 4, 0]]]), th.tensor([[0]]), th.zeros(1, 1, 1))
+    assert not th.allclose(q(*x, None, th.tensor([[0]]))[0], q(*x, None, th.tensor([[7]]))[0])
+    with pytest.raises(ValueError, match="pass steps"):
+        q(*x)
+    model.save(tmp_path / "clock.zip")
+    loaded = DREAM.load(tmp_path / "clock.zip")
+    assert loaded.policy.exploration_time_input and loaded.policy.exploration_q.time_embed is not None
+    assert DREAM("MetaBandit-v0").policy.exploration_q.time_embed is None  # the paper's network
+    with pytest.raises(ValueError, match="exploration_time_input"):
+        DREAM("MetaBandit-v0", policy_kwargs=dict(exploration_time_input=1))
+
+
 def test_execution_buffers_saved_before_the_step_was_stored_load_with_step_zero():
     model = DREAM("MetaBus-v0", seed=0, **FAST)
     model.learn(100)

@@ -388,6 +388,7 @@ class DREAM(TrialOffPolicyAlgorithm):
                 self._obs_tensor(state.prev_actions[explore, t])[:, None],
                 self._obs_tensor(state.prev_rewards[explore, t])[:, None, None],
                 hidden,
+                self._obs_tensor(t)[:, None] if self.policy.exploration_time_input else None,
             )
             state.hidden[0][:, explore], state.hidden[1][:, explore] = h, c
             chosen = q[:, 0].argmax(dim=-1).cpu().numpy()
@@ -773,10 +774,13 @@ class DREAM(TrialOffPolicyAlgorithm):
         prev_rewards, lengths = traj.prev_rewards, traj.lengths
         t_max = actions.shape[1]
         rewards = self.exploration_rewards(g, f, lengths)  # [B, T]
-        q_all, _ = policy.exploration_q(states, prev_actions, prev_rewards)  # [B, T+1, A]
+        clock = None  # the step of each state within its exploration episode, with exploration_time_input
+        if policy.exploration_time_input:
+            clock = th.arange(t_max + 1, device=self.device).expand(len(actions), -1)
+        q_all, _ = policy.exploration_q(states, prev_actions, prev_rewards, None, clock)  # [B, T+1, A]
         q = q_all[:, :t_max].gather(2, actions[..., None]).squeeze(2)
         with th.no_grad():
-            q_target_all, _ = policy.exploration_q_target(states, prev_actions, prev_rewards)
+            q_target_all, _ = policy.exploration_q_target(states, prev_actions, prev_rewards, None, clock)
             best = q_all[:, 1:].argmax(dim=2, keepdim=True)
             next_q = q_target_all[:, 1:].gather(2, best).squeeze(2)  # [B, T]
             steps = th.arange(t_max, device=self.device)[None]

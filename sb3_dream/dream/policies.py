@@ -140,27 +140,50 @@ class ExplorationQNetwork(nn.Module):
     Previous actions are embedded with a 16-d table (index 0 = none), previous rewards with a
     16-d linear layer (always 0 in reward-free exploration). The LSTM starts from zeros at each
     trial; training unrolls it fused over whole sequences.
+
+    ``time_steps`` > 0 (an option; not the paper's network) adds e(t), a 16-d embedding of the step
+    t within the exploration episode (clipped to ``time_steps``), to the input. The exploration
+    episode ends at a fixed horizon, so how much a step is worth depends on the steps left (a
+    wasted step early can cost the last bus ride); the LSTM can only count them, while with t the
+    horizon-terminal TD targets are Markov (Pardo et al., 2018, "Time Limits in RL").
     """
 
-    def __init__(self, observation_space: spaces.Dict, n_actions: int, hidden_size: int = 64) -> None:
+    TIME_EMBED_DIM = 16
+
+    def __init__(
+        self, observation_space: spaces.Dict, n_actions: int, hidden_size: int = 64, time_steps: int = 0
+    ) -> None:
         super().__init__()
         self.state_embed = make_state_embedder(observation_space["obs"])
         self.prev_action_embed = nn.Embedding(n_actions + 1, 16)
         self.prev_reward_embed = nn.Linear(1, 16)
-        self.body = nn.Sequential(nn.Linear(self.state_embed.embed_dim + 32, 64), nn.ReLU())
+        in_dim = self.state_embed.embed_dim + 32
+        self.time_steps = int(time_steps)
+        self.time_embed: Optional[nn.Embedding] = None
+        if self.time_steps > 0:
+            self.time_embed = nn.Embedding(self.time_steps + 1, self.TIME_EMBED_DIM)
+            in_dim += self.TIME_EMBED_DIM
+        self.body = nn.Sequential(nn.Linear(in_dim, 64), nn.ReLU())
         self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
         self.head = DuelingHead(hidden_size, n_actions)
         self.hidden_size = hidden_size
 
     def forward(
-        self, states: th.Tensor, prev_actions: th.Tensor, prev_rewards: th.Tensor, hidden: Optional[LSTMState] = None
+        self,
+        states: th.Tensor,
+        prev_actions: th.Tensor,
+        prev_rewards: th.Tensor,
+        hidden: Optional[LSTMState] = None,
+        steps: Optional[th.Tensor] = None,
     ) -> Tuple[th.Tensor, LSTMState]:
-        """Inputs [B, T, ...] -> Q-values [B, T, A] and the final LSTM state."""
-        x = th.cat(
-            [self.state_embed(states), self.prev_action_embed(prev_actions), self.prev_reward_embed(prev_rewards)],
-            dim=-1,
-        )
-        h, hidden = self.lstm(self.body(x), hidden)
+        """Inputs [B, T, ...] (``steps`` [B, T] with ``time_steps``) -> Q-values [B, T, A] and the
+        final LSTM state."""
+        parts = [self.state_embed(states), self.prev_action_embed(prev_actions), self.prev_reward_embed(prev_rewards)]
+        if self.time_embed is not None:
+            if steps is None:
+                raise ValueError("this exploration Q-network takes the exploration step: pass steps")
+            parts.append(self.time_embed(steps.long().clamp(0, self.time_steps)))
+        h, hidden = self.lstm(self.body(th.cat(parts, dim=-1)), hidden)
         return self.head(h), hidden
 
 
@@ -171,9 +194,11 @@ class DreamPolicy(BasePolicy):
     losses) and ``exploration_optimizer`` for Q^exp (trained on rewards computed without gradient).
 
     Options (``policy_kwargs``): ``z_dim``, ``execution_hidden_sizes`` the layers of Q^exe's body
-    (the paper's ``(64,)``), and ``execution_time_input`` (default False, the paper's network):
-    Q^exe also sees the step within the execution episode (see :class:`ExecutionQNetwork`).
-    ``horizon`` (the inner-episode horizon) is set by DREAM from the env.
+    (the paper's ``(64,)``), ``execution_time_input`` (default False, the paper's network): Q^exe
+    also sees the step within the execution episode (see :class:`ExecutionQNetwork`), and
+    ``exploration_time_input`` (default False): Q^exp also sees the step within the exploration
+    episode (see :class:`ExplorationQNetwork`). ``horizon`` (the inner-episode horizon) is set by
+    DREAM from the env.
     """
 
     def __init__(
@@ -185,6 +210,7 @@ class DreamPolicy(BasePolicy):
         z_dim: int = 64,
         execution_hidden_sizes: Sequence[int] = (64,),
         execution_time_input: bool = False,
+        exploration_time_input: bool = False,
         horizon: Optional[int] = None,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
@@ -199,15 +225,21 @@ class DreamPolicy(BasePolicy):
         n_actions = int(action_space.n)
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
-        if not isinstance(execution_time_input, (bool, np.bool_)):
-            raise ValueError(f"execution_time_input must be True or False, got {execution_time_input!r}")
-        if execution_time_input and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
-            raise ValueError(f"execution_time_input needs the inner-episode horizon >= 1, got horizon={horizon!r}")
+        for name, flag in (
+            ("execution_time_input", execution_time_input),
+            ("exploration_time_input", exploration_time_input),
+        ):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise ValueError(f"{name} must be True or False, got {flag!r}")
+            if flag and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
+                raise ValueError(f"{name} needs the inner-episode horizon >= 1, got horizon={horizon!r}")
         self.execution_time_input, self.horizon = bool(execution_time_input), horizon
+        self.exploration_time_input = bool(exploration_time_input)
         time_steps = int(horizon) if execution_time_input else 0
         self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, execution_hidden_sizes, time_steps)
         self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)  # checked by the network
-        self.exploration_q = ExplorationQNetwork(observation_space, n_actions)
+        time_steps = int(horizon) if exploration_time_input else 0
+        self.exploration_q = ExplorationQNetwork(observation_space, n_actions, time_steps=time_steps)
         self.encoder_target = copy.deepcopy(self.encoder)
         self.decoder_target = copy.deepcopy(self.decoder)
         self.execution_q_target = copy.deepcopy(self.execution_q)
@@ -240,6 +272,7 @@ class DreamPolicy(BasePolicy):
             z_dim=self.z_dim,
             execution_hidden_sizes=self.execution_hidden_sizes,
             execution_time_input=self.execution_time_input,
+            exploration_time_input=self.exploration_time_input,
             horizon=self.horizon,
             lr_schedule=self._dummy_schedule,
         )
