@@ -180,6 +180,11 @@ class MetaEvalCallback(BaseCallback):
 
     :param eval_freq: evaluate every this many env steps (counted over all envs), and once at the
         start and the end of training.
+    :param best_model_save_path: as in SB3's ``EvalCallback``: a folder where the model is saved as
+        ``best_model.zip`` each time its mean execution return beats every earlier evaluation
+        (``best_mean_reward``, reached at ``best_env_steps``). Training swings, so this keeps the best
+        model seen; select it on a split the agent trains on (``split="train"``), so that its
+        held-out return stays an honest estimate.
     """
 
     def __init__(
@@ -193,6 +198,7 @@ class MetaEvalCallback(BaseCallback):
         seed: int = 0,
         env_kwargs: Optional[Dict[str, Any]] = None,
         csv_path: Optional[str] = None,
+        best_model_save_path: Optional[str] = None,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
@@ -202,6 +208,9 @@ class MetaEvalCallback(BaseCallback):
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
         self.eval_env = _make_env(eval_env, split, n_exec_episodes, env_kwargs)
         self.deterministic, self.seed, self.csv_path = deterministic, seed, csv_path
+        self.best_model_save_path = best_model_save_path
+        self.best_mean_reward = -np.inf
+        self.best_env_steps: Optional[int] = None
         self.results: List[Dict[str, float]] = []
         self._last_eval_step: Optional[int] = None
         self._train_start = time.perf_counter()
@@ -215,6 +224,8 @@ class MetaEvalCallback(BaseCallback):
         if self.results:
             self._last_eval_step = int(self.results[-1]["env_steps"])
             self._wall_clock_offset = float(self.results[-1]["wall_clock_s"])
+            best = max(self.results, key=lambda row: float(row["mean"]))
+            self.best_mean_reward, self.best_env_steps = float(best["mean"]), int(best["env_steps"])
         if self.csv_path:
             os.makedirs(os.path.dirname(os.path.abspath(self.csv_path)), exist_ok=True)
             with open(self.csv_path, "w", newline="") as f:
@@ -268,6 +279,13 @@ class MetaEvalCallback(BaseCallback):
             for j, m in enumerate(result.per_episode_mean, start=1):
                 self.logger.record(f"eval/execution_return_ep{j}", float(m))
         self.logger.dump(self.num_timesteps)
+        if result.mean > self.best_mean_reward:
+            self.best_mean_reward, self.best_env_steps = float(result.mean), int(self.num_timesteps)
+            if self.best_model_save_path is not None:
+                os.makedirs(self.best_model_save_path, exist_ok=True)
+                path = os.path.join(self.best_model_save_path, "best_model.zip")
+                self.model.save(path + ".partial.zip")  # atomic: a reader never sees half a model
+                os.replace(path + ".partial.zip", path)
         if self.csv_path:
             with open(self.csv_path, "a", newline="") as f:
                 csv.writer(f).writerow([row[k] for k in CURVE_COLUMNS])

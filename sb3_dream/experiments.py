@@ -37,6 +37,11 @@ sync interval goes on to 1.2M with another, into its own ``--out``.
     <env>/snapshots/                  the model every N env steps, with --snapshot-freq N (SB3's
                                       CheckpointCallback: <algo>_seed<k>_<steps>_steps.zip, no
                                       replay buffers), to meta-test how a policy changes
+    <env>/best/<algo>_seed<k>/best_model.zip
+                                      with --select-on SPLIT: the model at the evaluation on SPLIT
+                                      with the highest return so far (MetaEvalCallback's
+                                      best_model_save_path); the run's JSON records its steps and
+                                      its return on the held-out split ("best")
     summary.csv, summary.md           final return mean +- std over seeds, the mean over each run's
                                       last tenth of env steps, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
@@ -77,6 +82,7 @@ import json
 import multiprocessing
 import os
 import pathlib
+import shutil
 import time
 import traceback
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -181,6 +187,7 @@ class RunConfig:
     save_models: bool = False
     checkpoint_freq: int = 0
     snapshot_freq: int = 0
+    select_on: str = ""
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
     init_from: str = ""
@@ -202,13 +209,18 @@ class RunConfig:
             freq = getattr(self, name)
             if isinstance(freq, bool) or not isinstance(freq, int) or freq < 0:
                 raise ValueError(f"{name} must be an integer >= 0 (0: off), got {freq!r}")
+        if self.select_on and self.select_on not in self.eval_splits:
+            raise ValueError(
+                f"select_on={self.select_on!r} is not valid; accepted values: the evaluated splits "
+                f"{', '.join(map(repr, self.eval_splits))} (add it to eval_splits), or '' (off)"
+            )
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq")
+        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq", "select_on")
         for key in (*unrecorded, "dream_kwargs", "rl2dqn_kwargs"):
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
@@ -242,6 +254,10 @@ class Run:
 
     def model_path(self, out: pathlib.Path) -> pathlib.Path:
         return self.folder(out) / f"{self.name}.zip"
+
+    def best_folder(self, out: pathlib.Path) -> pathlib.Path:
+        """Where ``--select-on`` keeps the run's best model (``best_model.zip``)."""
+        return self.folder(out) / "best" / self.name
 
     def checkpoint_path(self, out: pathlib.Path) -> pathlib.Path:
         """The JSON that names a run's last checkpoint (written last, so it is never half made)."""
@@ -385,7 +401,11 @@ class Checkpointer:
             return None
         return record
 
-    def save(self, model: Any, curves: Dict[str, List[Dict[str, float]]], train_seconds: float) -> None:
+    def save(
+        self, model: Any, curves: Dict[str, List[Dict[str, float]]], train_seconds: float, best: Any = None
+    ) -> None:
+        """``best``: the ``--select-on`` evaluation callback, whose best model is kept with the
+        checkpoint, so that a resumed run goes on selecting among all its evaluations."""
         self.folder.mkdir(parents=True, exist_ok=True)
         stem = f"{self.run.name}.{model.num_timesteps}"
         model.save(self.folder / f"{stem}.partial.zip")
@@ -400,6 +420,16 @@ class Checkpointer:
             "curves": curves,
             "settings": self.config.settings(self.run.algo),
         }
+        best_file = pathlib.Path(best.best_model_save_path or "") / "best_model.zip" if best is not None else None
+        if best_file is not None and best.best_env_steps is not None and best_file.exists():
+            shutil.copyfile(best_file, self.folder / f"{stem}.best.partial.zip")
+            os.replace(self.folder / f"{stem}.best.partial.zip", self.folder / f"{stem}.best.zip")
+            record["best"] = {
+                "model": f"{stem}.best.zip",
+                "split": best.split,
+                "env_steps": best.best_env_steps,
+                "mean": best.best_mean_reward,
+            }
         tmp = self.path.with_suffix(".json.partial")
         tmp.write_text(json.dumps(record, default=str))
         os.replace(tmp, self.path)
@@ -424,7 +454,9 @@ class Checkpointer:
             self.path.unlink(missing_ok=True)
 
 
-def _make_checkpoint_callback(checkpointer: Checkpointer, evaluations: Sequence[Any], seconds_before: float) -> Any:
+def _make_checkpoint_callback(
+    checkpointer: Checkpointer, evaluations: Sequence[Any], seconds_before: float, best: Any = None
+) -> Any:
     from stable_baselines3.common.callbacks import BaseCallback
 
     class CheckpointAfterEvaluation(BaseCallback):
@@ -440,7 +472,7 @@ def _make_checkpoint_callback(checkpointer: Checkpointer, evaluations: Sequence[
             evaluated = all(cb.results and cb.results[-1]["env_steps"] == self.num_timesteps for cb in evaluations)
             if evaluated and self.num_timesteps - self._last >= checkpointer.config.checkpoint_freq:
                 seconds = seconds_before + time.perf_counter() - self._start
-                checkpointer.save(self.model, {cb.split: cb.results for cb in evaluations}, seconds)
+                checkpointer.save(self.model, {cb.split: cb.results for cb in evaluations}, seconds, best)
                 self._last = self.num_timesteps
             return True
 
@@ -497,15 +529,21 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             seed=0,  # every run and evaluation meets the same problems: a paired comparison
             env_kwargs=run.env.eval_kwargs,
             csv_path=str(partial[split]),
+            best_model_save_path=str(run.best_folder(out)) if split == config.select_on else None,
         )
         for split in config.eval_splits
     ]
+    best = next((cb for cb in callbacks if cb.best_model_save_path is not None), None)
+    if best is not None and resume is None:
+        shutil.rmtree(run.best_folder(out), ignore_errors=True)  # a fresh run selects afresh
     if resume is not None:
         for callback in callbacks:
             callback.resume(resume["curves"][callback.split])
+        if best is not None:
+            _resume_best(best, resume, resume_folder, tag)
     callback_list = list(callbacks)
     if config.checkpoint_freq:
-        callback_list.append(_make_checkpoint_callback(checkpointer, callbacks, seconds_before))
+        callback_list.append(_make_checkpoint_callback(checkpointer, callbacks, seconds_before, best))
     if config.snapshot_freq:
         from stable_baselines3.common.callbacks import CheckpointCallback
 
@@ -524,7 +562,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
 
     if config.checkpoint_freq and checkpointer.saved_steps() != model.num_timesteps:
         # Kept once the run is complete, so that a larger budget later extends it.
-        checkpointer.save(model, {cb.split: cb.results for cb in callbacks}, seconds)
+        checkpointer.save(model, {cb.split: cb.results for cb in callbacks}, seconds, best)
     if config.save_models:
         tmp = run.model_path(out).with_name(run.name + ".partial.zip")
         model.save(tmp)
@@ -541,6 +579,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         "init_from": init_from,
         "final": finals,
     }
+    if best is not None and best.best_env_steps is not None:
+        info["best"] = _meta_test_best(run, config, best, tag)
     if run.algo in ("dream", "dream_no_bottleneck"):
         from sb3_dream.dream import diagnose
 
@@ -559,6 +599,46 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     for split in sorted(config.eval_splits, key=lambda s: s == "test"):
         os.replace(partial[split], run.curve_path(out, split))
     return {"run": run, "status": "done", "seconds": seconds, "final": finals}
+
+
+def _resume_best(best: Any, record: Dict[str, Any], folder: pathlib.Path, tag: str) -> None:
+    """Restore the ``--select-on`` best model kept with the checkpoint the run goes on from."""
+    kept = record.get("best")
+    if kept and kept.get("split") == best.split and (folder / kept["model"]).exists():
+        os.makedirs(best.best_model_save_path, exist_ok=True)
+        shutil.copyfile(folder / kept["model"], pathlib.Path(best.best_model_save_path) / "best_model.zip")
+        best.best_mean_reward, best.best_env_steps = float(kept["mean"]), int(kept["env_steps"])
+    else:
+        # The checkpoint was made without --select-on: select among the evaluations from here on.
+        best.best_mean_reward, best.best_env_steps = -np.inf, None
+        print(f"[{tag}] the checkpoint keeps no best model: selecting from here on", flush=True)
+
+
+def _meta_test_best(run: Run, config: RunConfig, best: Any, tag: str) -> Dict[str, Any]:
+    """The ``--select-on`` best model's return on the held-out split (the same trials as the curve)."""
+    from sb3_dream.evaluation import evaluate_meta
+
+    model = algorithm_class(run.algo).load(pathlib.Path(best.best_model_save_path) / "best_model.zip")
+    result = evaluate_meta(
+        model,
+        run.env.env_id,
+        n_trials=config.eval_trials,
+        split="test",
+        n_exec_episodes=run.env.n_exec_episodes,
+        seed=0,
+        env_kwargs=run.env.eval_kwargs,
+    )
+    print(
+        f"[{tag}] best on {best.split}: {best.best_mean_reward:.3f} at {best.best_env_steps} env steps; "
+        f"held-out return {result.mean:.3f} ± {result.ci:.3f}",
+        flush=True,
+    )
+    return {
+        "selected_on": best.split,
+        "env_steps": best.best_env_steps,
+        "mean_on_selection_split": best.best_mean_reward,
+        "test": {"mean": result.mean, "ci": result.ci, "exploration_length": result.mean_exploration_length},
+    }
 
 
 def _run_worker(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
@@ -884,6 +964,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="also save the model (no replay buffers) every N env steps under <env>/snapshots/; 0: off",
     )
     parser.add_argument(
+        "--select-on",
+        default="",
+        choices=("", *SPLITS),
+        metavar="SPLIT",
+        help="keep the model of the best evaluation on SPLIT (one of --eval-splits; train: an honest "
+        "choice) under <env>/best/ and meta-test it on the held-out split at the end",
+    )
+    parser.add_argument(
         "--init-from",
         default="",
         metavar="DIR",
@@ -918,6 +1006,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             save_models=args.save_models,
             checkpoint_freq=args.checkpoint_freq,
             snapshot_freq=args.snapshot_freq,
+            select_on=args.select_on,
             dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
             rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
             init_from=args.init_from,

@@ -311,3 +311,65 @@ def test_finished_runs_are_found_from_their_records_whatever_split_they_evaluate
     train_only.curve_path(tmp_path, "train").write_text("env_steps,wall_clock_s,mean,ci,exploration_length\n")
     (tmp_path / "MetaBus-v0" / "oracle_test.json").write_text(json.dumps({"mean": 0.8}))
     assert experiments.finished_runs(tmp_path) == [train_only]
+
+
+def _scripted_evaluations(monkeypatch, means):
+    """Make every meta-test return ``means[(split, env_steps of the model)]`` (a real evaluation is
+    run and its returns replaced), so that which evaluation is best is known in advance."""
+    import sb3_dream.evaluation as evaluation
+
+    real = evaluation.evaluate_meta
+
+    def scripted(agent, env, n_trials=100, split="test", **kwargs):
+        result = real(agent, env, n_trials=n_trials, split=split, **kwargs)
+        result.returns = np.full_like(result.returns, means[(split, agent.num_timesteps)])
+        return result
+
+    monkeypatch.setattr(evaluation, "evaluate_meta", scripted)
+
+
+def test_select_on_keeps_the_best_model_across_an_interruption(tmp_path, monkeypatch):
+    out = tmp_path / "results"
+    config = RunConfig(
+        steps=400, eval_freq=100, eval_trials=2, eval_splits=("test", "train"), checkpoint_freq=200,
+        select_on="train", dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+    )  # fmt: skip
+    assert "select_on" not in config.settings("dream")
+    run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
+    train = {0: -1.0, 100: 0.5, 200: 0.2, 300: 0.3, 400: 0.1}
+    means = {("train", k): v for k, v in train.items()}
+    means.update({("test", k): v / 2 for k, v in train.items()})  # the held-out return of each model
+    _scripted_evaluations(monkeypatch, means)
+    from sb3_dream.evaluation import MetaEvalCallback
+
+    evaluate = MetaEvalCallback._evaluate
+
+    def interrupted(self):
+        if self.num_timesteps >= 300:
+            raise KeyboardInterrupt  # killed after the checkpoint at 200
+        evaluate(self)
+
+    monkeypatch.setattr(MetaEvalCallback, "_evaluate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        experiments.run_one(run, config, out)
+    best_file = run.best_folder(out) / "best_model.zip"
+    assert experiments.algorithm_class("dream").load(best_file).num_timesteps == 100
+    checkpoint = json.loads(run.checkpoint_path(out).read_text())
+    assert checkpoint["best"] == {"model": "dream_seed0.200.best.zip", "split": "train", "env_steps": 100, "mean": 0.5}
+
+    best_file.unlink()  # lost with the interruption: the checkpoint's copy brings it back
+    monkeypatch.setattr(MetaEvalCallback, "_evaluate", evaluate)
+    experiments.run_one(run, config, out)
+    info = json.loads(run.info_path(out).read_text())
+    assert info["best"]["selected_on"] == "train"
+    # None of the evaluations after the resume beats the one at 100 steps, made before it.
+    assert info["best"]["env_steps"] == 100 and info["best"]["mean_on_selection_split"] == pytest.approx(0.5)
+    assert info["best"]["test"]["mean"] == pytest.approx(0.25)  # the 100-step model, meta-tested again
+    assert experiments.algorithm_class("dream").load(best_file).num_timesteps == 100
+    assert info["final"]["train"]["mean"] == pytest.approx(0.1)
+
+
+def test_select_on_must_be_an_evaluated_split():
+    with pytest.raises(ValueError, match="select_on='train' is not valid; accepted values: the evaluated splits"):
+        RunConfig(select_on="train")
+    assert RunConfig(select_on="train", eval_splits=("test", "train")).select_on == "train"
