@@ -346,6 +346,17 @@ def init_checkpoint(run: Run, config: RunConfig) -> Tuple[pathlib.Path, Dict[str
     return parent.folder, record
 
 
+def _meta_test_kwargs(run: Run, config: RunConfig) -> Dict[str, Any]:
+    """The trials of every meta-test of a run (curves, best model): seed 0, so that every run and
+    evaluation meets the same problems, a paired comparison."""
+    return {
+        "n_trials": config.eval_trials,
+        "n_exec_episodes": run.env.n_exec_episodes,
+        "seed": 0,
+        "env_kwargs": run.env.eval_kwargs,
+    }
+
+
 def _make_progress_callback(tag: str, **kwargs: Any) -> Any:
     """A :class:`MetaEvalCallback` that prints one tagged line per evaluation (runs share a terminal)."""
     from sb3_dream.evaluation import MetaEvalCallback
@@ -420,8 +431,8 @@ class Checkpointer:
             "curves": curves,
             "settings": self.config.settings(self.run.algo),
         }
-        best_file = pathlib.Path(best.best_model_save_path or "") / "best_model.zip" if best is not None else None
-        if best_file is not None and best.best_env_steps is not None and best_file.exists():
+        best_file = None if best is None else pathlib.Path(best.best_model_save_path) / "best_model.zip"
+        if best_file is not None and best_file.exists() and best.best_env_steps is not None:
             shutil.copyfile(best_file, self.folder / f"{stem}.best.partial.zip")
             os.replace(self.folder / f"{stem}.best.partial.zip", self.folder / f"{stem}.best.zip")
             record["best"] = {
@@ -523,13 +534,10 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             tag if len(config.eval_splits) == 1 else f"{tag} {split}",
             eval_env=run.env.env_id,
             eval_freq=config.eval_freq,
-            n_trials=config.eval_trials,
             split=split,
-            n_exec_episodes=run.env.n_exec_episodes,
-            seed=0,  # every run and evaluation meets the same problems: a paired comparison
-            env_kwargs=run.env.eval_kwargs,
             csv_path=str(partial[split]),
             best_model_save_path=str(run.best_folder(out)) if split == config.select_on else None,
+            **_meta_test_kwargs(run, config),
         )
         for split in config.eval_splits
     ]
@@ -619,15 +627,7 @@ def _meta_test_best(run: Run, config: RunConfig, best: Any, tag: str) -> Dict[st
     from sb3_dream.evaluation import evaluate_meta
 
     model = algorithm_class(run.algo).load(pathlib.Path(best.best_model_save_path) / "best_model.zip")
-    result = evaluate_meta(
-        model,
-        run.env.env_id,
-        n_trials=config.eval_trials,
-        split="test",
-        n_exec_episodes=run.env.n_exec_episodes,
-        seed=0,
-        env_kwargs=run.env.eval_kwargs,
-    )
+    result = evaluate_meta(model, run.env.env_id, split="test", **_meta_test_kwargs(run, config))
     print(
         f"[{tag}] best on {best.split}: {best.best_mean_reward:.3f} at {best.best_env_steps} env steps; "
         f"held-out return {result.mean:.3f} ± {result.ci:.3f}",
