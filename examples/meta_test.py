@@ -16,7 +16,8 @@ problem of the split instead of drawing them.
 
 ``--diagnose`` (DREAM only) also runs :func:`sb3_dream.dream.diagnose`: the same trials once more
 with the execution policy given the privileged z = f(T), to tell whether exploration (and the
-decoder) or execution limits the model.
+decoder) or execution limits the model, and once more with z ~ N(f(T), rho^2 I), the noisy code
+the execution policy trains on.
 
 ``--exploration`` (MetaBus-v0 only) reports what each agent does while exploring, as the paper's
 Figure 7 shows it: colored and gray routes ridden, whether it read the map
@@ -70,7 +71,9 @@ def main() -> None:
     parser.add_argument("--n-exec-episodes", type=int, default=1)
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--diagnose", action="store_true", help="DREAM: also meta-test with z = f(T) (privileged)")
+    parser.add_argument(
+        "--diagnose", action="store_true", help="DREAM: also meta-test on z = f(T) and on z ~ N(f(T), rho^2 I)"
+    )
     parser.add_argument("--exploration", action="store_true", help="MetaBus-v0: the routes each agent explores")
     args = parser.parse_args()
 
@@ -118,7 +121,7 @@ def main() -> None:
             )
             prefix = "" if len(models) == 1 else f"{path} "
             print(
-                f"  {prefix}diagnosis: return with z = g(tau^exp) {d.return_g:.3f}, with z = f(T) {d.return_f:.3f}; "
+                f"  {prefix}diagnosis: {d.returns_text()}; "
                 f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
                 "variance of f explained by each problem feature: "
                 + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)

@@ -596,7 +596,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
         info["diagnosis"] = diagnosis.as_dict()
         print(
-            f"[{tag}] diagnosis: return with z = g {diagnosis.return_g:.3f}, with z = f(T) {diagnosis.return_f:.3f}; "
+            f"[{tag}] diagnosis: {diagnosis.returns_text()}; "
             f"||g - f||^2 {diagnosis.decoder_error:.2f} vs spread of f {diagnosis.f_spread:.2f}",
             flush=True,
         )

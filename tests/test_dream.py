@@ -98,6 +98,10 @@ def test_f_source_z_is_noisy_around_f_and_g_source_is_the_decoder():
     f = model._encode(pid, noisy=False)
     assert np.allclose(f, f[0]) and not np.allclose(z, z[0])
     assert np.std(z - f) == pytest.approx(np.sqrt(0.1), rel=0.25)
+    # a seeded generator gives the same noise (diagnose's noisy-code run), the global one goes on
+    seeded = [model._encode(pid, noisy=True, generator=th.Generator().manual_seed(5)) for _ in range(2)]
+    np.testing.assert_array_equal(seeded[0], seeded[1])
+    assert not np.allclose(seeded[0], z) and np.std(seeded[0] - f) == pytest.approx(np.sqrt(0.1), rel=0.25)
     no_bottleneck = DREAM("MetaBandit-v0", bottleneck=False, seed=0)
     np.testing.assert_array_equal(no_bottleneck._encode(pid, noisy=True), no_bottleneck._encode(pid, noisy=False))
 
@@ -425,5 +429,12 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
     assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
     assert perfect.return_g == perfect.return_f
+    # The noisy code's run draws its noise from the seed; with a vanishing rho^2 it is f(T)'s run.
+    assert d.return_f_noisy is not None
+    monkeypatch.setattr(bus_model, "encoder_variance", 1e-12)
+    tiny = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
+    assert tiny.return_f_noisy == tiny.return_f
+    monkeypatch.setattr(bus_model, "bottleneck", False)  # DREAM (no bottleneck): no noise, no third run
+    assert diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40]).return_f_noisy is None
     with pytest.raises(TypeError, match="model"):
         diagnose("not a model", "MetaBus-v0")

@@ -16,6 +16,11 @@ problem ID (never available at meta-test, so this is a diagnostic, not an evalua
 ``return_f`` well above ``return_g``: exploration (or the decoder) is. Both runs use the same
 problems, instructions and env seeds, and greedy policies, so the exploration trajectories are the
 same in both.
+
+``return_f_noisy`` runs the execution policy a third time, on z ~ N(f(T), rho^2 I): the code that
+half of its training (Equation 2's f branch) gives it. Well below ``return_f``, the bottleneck's
+noise hides much of the code from the execution policy (rho^2 per dimension against the spread
+of f between problems). ``None`` without the noise (``bottleneck=False`` or rho^2 = 0).
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 
 import gymnasium as gym
 import numpy as np
+import torch as th
 
 from dream_envs.core import SPLITS, check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamTrialAgent
@@ -37,6 +43,7 @@ class DreamDiagnosis:
 
     return_g: float  # meta-test: z = g(tau^exp)
     return_f: float  # the execution policy given z = f(T) (privileged)
+    return_f_noisy: Optional[float]  # ... given z ~ N(f(T), rho^2 I), as in training; None without noise
     decoder_error: float  # ||g(tau^exp) - f(T)||^2
     f_norm_sq: float  # ||f(T)||^2
     f_spread: float  # ||f(T) - f(T')||^2 over pairs of the split's problems
@@ -47,20 +54,30 @@ class DreamDiagnosis:
     def as_dict(self) -> Dict[str, Any]:
         return asdict(self)
 
+    def returns_text(self) -> str:
+        """The three returns in words, for logs."""
+        text = f"return with z = g {self.return_g:.3f}, with z = f(T) {self.return_f:.3f}"
+        if self.return_f_noisy is not None:
+            text += f", with z ~ N(f(T), rho^2 I) {self.return_f_noisy:.3f}"
+        return text
+
 
 class _DiagnosticAgent(DreamTrialAgent):
-    """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source="f"``, acts on f(T)."""
+    """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
+    f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``)."""
 
-    def __init__(self, model: DREAM, problem_ids: np.ndarray, z_source: str) -> None:
+    def __init__(self, model: DREAM, problem_ids: np.ndarray, z_source: str, seed: int = 0) -> None:
         self.z_source = z_source
-        self.f = model._encode(problem_ids, noisy=False)  # f(T) of trial k's problem
+        generator = th.Generator(device=model.device).manual_seed(seed)
+        # trial k's code: f(T) of its problem (noisy for "f_noisy")
+        self.f = model._encode(problem_ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: List[np.ndarray] = []
         super().__init__(model, deterministic=True)
 
     def _explored(self) -> None:
         k = len(self.g)  # one exploration per trial, trials in order
         self.g.append(self.state.z[0].copy())
-        if self.z_source == "f":
+        if self.z_source != "g":
             self.state.z[0] = self.f[k]
 
 
@@ -91,8 +108,9 @@ def diagnose(
     env_kwargs: Optional[Dict[str, Any]] = None,
     problem_ids: Optional[Sequence[int]] = None,
 ) -> DreamDiagnosis:
-    """Meta-test ``model`` twice on the same ``n_trials`` trials of ``split``: with z = g(tau^exp)
-    and with z = f(T); see the module docstring for how to read the result.
+    """Meta-test ``model`` on the same ``n_trials`` trials of ``split`` with z = g(tau^exp), with
+    z = f(T) and (if the model's encoder is noisy) with z ~ N(f(T), rho^2 I); see the module
+    docstring for how to read the result.
 
     :param problem_ids: trial k's problem is ``problem_ids[k % len(problem_ids)]``; by default
         problems are drawn uniformly from ``split`` with ``seed``.
@@ -109,8 +127,8 @@ def diagnose(
     problem_ids = np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
 
     results, agents = {}, {}
-    for source in ("g", "f"):
-        agents[source] = _DiagnosticAgent(model, problem_ids, source)
+    for source in ("g", "f", "f_noisy") if model.encoder_noise else ("g", "f"):
+        agents[source] = _DiagnosticAgent(model, problem_ids, source, seed)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
     features = trial_env.unwrapped.problem_feature_table()[split_ids]
     if isinstance(env, str):
@@ -125,6 +143,7 @@ def diagnose(
     return DreamDiagnosis(
         return_g=results["g"].mean,
         return_f=results["f"].mean,
+        return_f_noisy=results["f_noisy"].mean if "f_noisy" in results else None,
         decoder_error=float(((g - f) ** 2).sum(axis=1).mean()),
         f_norm_sq=float((f**2).sum(axis=1).mean()),
         f_spread=float(pair_sum / max(1, n * (n - 1))),

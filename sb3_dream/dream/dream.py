@@ -359,12 +359,19 @@ class DREAM(TrialOffPolicyAlgorithm):
         return g[rows, th.as_tensor(n_transitions, device=self.device)].cpu().numpy()
 
     @th.no_grad()
-    def _encode(self, problem_ids: np.ndarray, noisy: bool) -> np.ndarray:
-        """z ~ N(f(T), rho^2 I) (or f(T) without the bottleneck's noise)."""
+    def _encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
+        """z ~ N(f(T), rho^2 I) (or f(T) without the bottleneck's noise); the noise from ``generator``
+        (default: torch's global one)."""
         f = self.policy.encoder(self._obs_tensor(self.problem_table[problem_ids]))
-        if noisy and self.bottleneck and self.encoder_variance > 0:
-            f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
+        if noisy and self.encoder_noise:
+            noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
+            f = f + noise * float(np.sqrt(self.encoder_variance))
         return f.cpu().numpy()
+
+    @property
+    def encoder_noise(self) -> bool:
+        """Whether z from the encoder is noisy: with the bottleneck and rho^2 > 0."""
+        return self.bottleneck and self.encoder_variance > 0
 
     @th.no_grad()
     def _act(
@@ -703,7 +710,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         lengths = traj.lengths
         z_g = g_all[rows, lengths]  # g(tau^exp) of each transition's trial
         z_f = f
-        if self.bottleneck and self.encoder_variance > 0:
+        if self.encoder_noise:
             z_f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
 
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
