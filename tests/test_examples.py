@@ -90,7 +90,7 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
     diagnose_args = ["--model", str(model), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
     out = run_example("meta_test.py", *diagnose_args, "--exploration", cwd=tmp_path)
-    assert "diagnosis: return with z = g(tau^exp)" in out and "with z = f(T)" in out
+    assert "diagnosis: return with z = g " in out and "with z = f(T) " in out and "with z ~ N(f(T), rho^2 I) " in out
     # The oracle reads the map in every trial and ends the exploration episode after 5 steps.
     assert "optimal (scripted) exploring: colored routes seen 0.00" in out
     assert "map read 100%, exploration length 5.0, execution return 0.800" in out
