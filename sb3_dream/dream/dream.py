@@ -363,15 +363,19 @@ class DREAM(TrialOffPolicyAlgorithm):
         """z ~ N(f(T), rho^2 I) (or f(T) without the bottleneck's noise); the noise from ``generator``
         (default: torch's global one)."""
         f = self.policy.encoder(self._obs_tensor(self.problem_table[problem_ids]))
-        if noisy and self.encoder_noise:
-            noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
-            f = f + noise * float(np.sqrt(self.encoder_variance))
-        return f.cpu().numpy()
+        return (self._add_encoder_noise(f, generator) if noisy else f).cpu().numpy()
 
     @property
     def encoder_noise(self) -> bool:
         """Whether z from the encoder is noisy: with the bottleneck and rho^2 > 0."""
         return self.bottleneck and self.encoder_variance > 0
+
+    def _add_encoder_noise(self, f: th.Tensor, generator: Optional[th.Generator] = None) -> th.Tensor:
+        """f + N(0, rho^2 I) where the encoder is noisy (Equation 2's f branch), else f unchanged."""
+        if not self.encoder_noise:
+            return f
+        noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
+        return f + noise * float(np.sqrt(self.encoder_variance))
 
     @th.no_grad()
     def _act(
@@ -709,9 +713,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         rows = th.arange(n_exe, device=self.device)
         lengths = traj.lengths
         z_g = g_all[rows, lengths]  # g(tau^exp) of each transition's trial
-        z_f = f
-        if self.encoder_noise:
-            z_f = f + th.randn_like(f) * float(np.sqrt(self.encoder_variance))
+        z_f = self._add_encoder_noise(f)
 
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
