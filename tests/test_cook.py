@@ -205,14 +205,14 @@ def test_undo_penalties_return_to_earlier_stage():
     rewards, _ = run(env, [RIGHT, PICKUP, PICKUP])
     assert rewards == pytest.approx([-0.1, 0.25, -0.1])  # picking A again earns nothing: no gaming
     assert env.stage == 1
-    assert env.step(DROP)[1] == pytest.approx(-0.25) and env.stage == 0  # dropped away from the pot
+    assert env.step(DROP)[1] == pytest.approx(-0.35) and env.stage == 0  # dropped away from the pot: -0.1 - 0.25
     assert env.step(PICKUP)[1] == pytest.approx(0.25) and env.stage == 1
     env.step(UP)
-    assert env.step(PICKUP)[1] == pytest.approx(-0.25) and env.stage == 0  # wrong one picked over A
+    assert env.step(PICKUP)[1] == pytest.approx(-0.35) and env.stage == 0  # wrong one picked over A
     rewards, _ = run(env, [DOWN, PICKUP, LEFT, DROP, RIGHT, UP, PICKUP])
     assert rewards == pytest.approx([-0.1, 0.25, -0.1, 0.25, -0.1, -0.1, 0.25]) and env.stage == 3
     assert env.step(DOWN)[1] == pytest.approx(-0.1)
-    assert env.step(PICKUP)[1] == pytest.approx(-0.25) and env.stage == 2  # 7 picked over B
+    assert env.step(PICKUP)[1] == pytest.approx(-0.35) and env.stage == 2  # 7 picked over B
     assert env.step(DROP)[1] == pytest.approx(-0.1) and env.stage == 2  # a non-needed ingredient: no change
     rewards, (_, _, terminated, _, _) = run(env, [UP, PICKUP, DOWN, LEFT, DROP])
     assert rewards == pytest.approx([-0.1, 0.25, -0.1, -0.1, 0.25]) and terminated
@@ -224,14 +224,26 @@ def test_ruined_dish_is_a_sink():
     run(env, [RIGHT, PICKUP, LEFT])
     assert env.step(DROP)[1] == pytest.approx(0.25) and env.stage == 2
     run(env, [RIGHT, DOWN, PICKUP, UP, LEFT])  # holding 4, not the recipe's second ingredient
-    assert env.step(DROP)[1] == pytest.approx(-0.25) and env.stage == RUINED
+    assert env.step(DROP)[1] == pytest.approx(-0.35) and env.stage == RUINED
     rewards, (obs, _, terminated, _, info) = run(env, [RIGHT, UP, PICKUP, DOWN, LEFT, DROP])
     assert rewards == pytest.approx([-0.1] * 6) and not terminated  # holding 6 over a full pot: nothing to earn
     assert obs["obs"].tolist() == [1, 1, POT, 6, 7, 4]
     # A wrong first ingredient ruins the dish too.
     to_execution(env, instruction=(7, 6))
     run(env, [RIGHT, UP, PICKUP, DOWN, LEFT])
-    assert env.step(DROP)[1] == pytest.approx(-0.25) and env.stage == RUINED
+    assert env.step(DROP)[1] == pytest.approx(-0.35) and env.stage == RUINED
+
+
+def test_undo_reward_option_and_why_the_default_adds_the_step_penalty():
+    # Advancing then undoing must cost something beyond idling's share, or a loop is free.
+    for undo_reward, pair in ((None, -0.1), (-0.25, 0.0)):
+        env = make(horizon=50) if undo_reward is None else make(horizon=50, undo_reward=undo_reward)
+        to_execution(env, instruction=(7, 6))
+        run(env, [RIGHT])
+        rewards, _ = run(env, [PICKUP, DROP])
+        assert sum(rewards) == pytest.approx(pair) and env.stage == 0
+    with pytest.raises(ValueError, match="undo_reward"):
+        make(undo_reward=0.5)
 
 
 def test_end_episode_costs_the_remaining_steps():
