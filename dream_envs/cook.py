@@ -8,14 +8,23 @@ generalisation (the paper's Figure 6, middle).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, SPLITS, ScriptedAgent, TrialEnv, check_choice, check_positive_int
+from dream_envs.core import (
+    EXPLORATION,
+    SPLITS,
+    ScriptedAgent,
+    TrialEnv,
+    check_choice,
+    check_positive_int,
+    play_trials,
+)
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
 
 # Grid actions, shared by the grid envs (the ride-bus action does nothing in a kitchen).
@@ -483,3 +492,106 @@ class CookOracle(ScriptedAgent):
             target = FRIDGE_POS[fridge]
             return PICKUP if (x, y) == target else _step_towards(x, y, target)
         return END_EPISODE  # ruined dish (never by this agent): nothing left to earn
+
+
+# ---------------------------------------------------------------------------------- behaviour report
+@dataclass
+class CookReport:
+    """What an agent did in MetaCook trials (the paper's Figure 8 in numbers).
+
+    Per trial: how many fridges it opened (picked from) while exploring, and the exploration
+    length. Per execution episode: its return next to the optimal one for its problem and recipe,
+    whether it finished the recipe or ruined the dish, and how many of its steps set the recipe
+    back (an undo: letting go of a needed ingredient). Undos in episodes that end unfinished are
+    the sign of a policy that loops pickup/drop instead of cooking.
+    """
+
+    fridges_opened: np.ndarray  # [n_trials] 0..3
+    exploration_lengths: np.ndarray  # [n_trials]
+    execution_returns: np.ndarray  # [n_episodes]
+    optimal_returns: np.ndarray  # [n_episodes]
+    finished: np.ndarray  # [n_episodes] bool
+    ruined: np.ndarray  # [n_episodes] bool
+    undos: np.ndarray  # [n_episodes] steps that set the recipe back
+
+    def summary(self) -> str:
+        counts = np.bincount(self.fridges_opened, minlength=N_FRIDGES + 1)
+        return (
+            f"fridges opened while exploring {self.fridges_opened.mean():.2f} (trials with 0..3: {counts.tolist()}), "
+            f"exploration length {self.exploration_lengths.mean():.1f}, "
+            f"execution return {self.execution_returns.mean():.3f} (optimal {self.optimal_returns.mean():.3f}); "
+            f"recipe finished in {self.finished.mean():.0%} of execution episodes "
+            f"({np.isclose(self.execution_returns, self.optimal_returns).mean():.0%} optimally), "
+            f"dish ruined in {self.ruined.mean():.0%}, undos per episode {self.undos.mean():.2f} "
+            f"(episodes with one: {(self.undos > 0).mean():.0%})"
+        )
+
+
+class _CookRecorder(ScriptedAgent):
+    """Passes ``agent``'s actions through and notes the fridges it picks from while exploring and
+    each execution episode's recipe and actions; it sees only what the agent sees."""
+
+    def __init__(self, agent: ScriptedAgent) -> None:
+        self.agent = agent
+
+    def reset(self) -> None:
+        self.agent.reset()
+        self.opened: set = set()
+        self.episodes: List[Tuple[Tuple[int, int], List[int]]] = []
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        action = self.agent.act(obs, info)
+        x, y = int(obs["obs"][0]), int(obs["obs"][1])
+        if int(obs["phase"]) == EXPLORATION:
+            if action == PICKUP and x == FRIDGE_POS[0][0]:
+                self.opened.add(y)
+        else:
+            if int(obs["episode_start"]):
+                self.episodes.append((tuple(int(i) for i in obs["instruction"]), []))
+            self.episodes[-1][1].append(action)
+        return action
+
+
+def _replay_execution(contents: Sequence[int], instruction: Tuple[int, int], actions: Sequence[int]) -> Tuple[int, int]:
+    """The stage an execution episode's ``actions`` reach, and how many of them set the recipe back."""
+    state, stage, undos = (*START, 0, 0, 0), 0, 0
+    for action in actions:
+        if action == END_EPISODE:
+            break
+        state, _, _ = cook_transition(state, action, contents, None)
+        new_stage = recipe_stage(state[2], (state[3], state[4]), instruction)
+        undos += new_stage < stage
+        stage = new_stage
+    return stage, undos
+
+
+def behaviour_report(
+    env: MetaCookEnv,
+    agent: ScriptedAgent,
+    n_trials: int = 100,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+) -> CookReport:
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration and execution.
+
+    The problem ID is read from the env's ``info`` after each trial, to replay the execution
+    episodes through :func:`cook_transition`; the agent never sees it. ``problem_ids`` pins trial k
+    to ``problem_ids[k % len(problem_ids)]``.
+    """
+    cook = env.unwrapped
+    if not isinstance(cook, MetaCookEnv):
+        raise ValueError(f"env must be a MetaCook-v0 env, got {type(cook).__name__}")
+    recorder = _CookRecorder(agent)
+    opened, lengths, episodes = [], [], []
+    for result in play_trials(env, recorder, n_trials, seed, problem_ids):
+        problem_id = int(result["problem_id"])
+        contents = fridge_contents(problem_id)
+        opened.append(len(recorder.opened))
+        lengths.append(result["exploration_length"])
+        for (instruction, actions), ret in zip(recorder.episodes, result["execution_returns"]):
+            stage, undos = _replay_execution(contents, instruction, actions)
+            optimal = optimal_execution_return(problem_id, instruction)
+            episodes.append((ret, optimal, stage == DONE_STAGE, stage == RUINED, undos))
+    returns, optimal, finished, ruined, undos = (np.array(column) for column in zip(*episodes))
+    return CookReport(np.array(opened), np.array(lengths), returns, optimal, finished, ruined, undos)

@@ -5,6 +5,7 @@
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --exhaustive
     python examples/meta_test.py --model dream_map.zip --env-kwargs variant=map --diagnose
     python examples/meta_test.py --model dream_metabus.zip --exploration
+    python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --split train --exploration
     python examples/meta_test.py --model snapshots/dream_seed0_*_steps.zip --exploration  # one line each
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
@@ -19,9 +20,11 @@ with the execution policy given the privileged z = f(T), to tell whether explora
 decoder) or execution limits the model, and once more with z ~ N(f(T), rho^2 I), the noisy code
 the execution policy trains on.
 
-``--exploration`` (MetaBus-v0 only) reports what each agent does while exploring, as the paper's
-Figure 7 shows it: colored and gray routes ridden, whether it read the map
-(:func:`dream_envs.bus.exploration_report`).
+``--exploration`` reports what each agent does, as the paper's Figures 7 and 8 show it. MetaBus-v0:
+colored and gray routes ridden while exploring, whether it read the map
+(:func:`dream_envs.bus.exploration_report`). MetaCook-v0: fridges opened while exploring, and per
+execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
+stage (:func:`dream_envs.cook.behaviour_report`).
 
 The model's algorithm (DREAM or RL2DQN) is read from the saved file. Several ``--model`` files
 (e.g. the runner's ``--snapshot-freq`` snapshots of one run) are meta-tested on the same trials,
@@ -74,7 +77,9 @@ def main() -> None:
     parser.add_argument(
         "--diagnose", action="store_true", help="DREAM: also meta-test on z = f(T) and on z ~ N(f(T), rho^2 I)"
     )
-    parser.add_argument("--exploration", action="store_true", help="MetaBus-v0: the routes each agent explores")
+    parser.add_argument(
+        "--exploration", action="store_true", help="MetaBus-v0 and MetaCook-v0: what each agent explores and does"
+    )
     args = parser.parse_args()
 
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
@@ -103,12 +108,14 @@ def main() -> None:
         print(f"  {name:>20}: {result.summary()}")
     if args.exploration:
         from dream_envs.bus import exploration_report
+        from dream_envs.cook import behaviour_report
         from sb3_dream.evaluation import as_trial_agent
 
-        if args.env != "MetaBus-v0":
-            raise SystemExit(f"--exploration needs --env MetaBus-v0, got {args.env}")
+        reports = {"MetaBus-v0": exploration_report, "MetaCook-v0": behaviour_report}
+        if args.env not in reports:
+            raise SystemExit(f"--exploration needs --env MetaBus-v0 or MetaCook-v0, got {args.env}")
         for name, agent in agents.items():
-            report = exploration_report(env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
+            report = reports[args.env](env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
             print(f"  {name:>20} exploring: {report.summary()}")
     if args.diagnose:
         from sb3_dream.dream import DREAM, diagnose

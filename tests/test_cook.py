@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import dream_envs
-from dream_envs import EXECUTION, EXPLORATION, RandomAgent, play_trial, public_info
+from dream_envs import EXECUTION, EXPLORATION, RandomAgent, ScriptedAgent, play_trial, public_info
 from dream_envs.cook import (
     DOWN,
     DROP,
@@ -27,6 +27,7 @@ from dream_envs.cook import (
     RUINED,
     UP,
     MetaCookEnv,
+    behaviour_report,
     cook_transition,
     fridge_contents,
     optimal_execution_return,
@@ -508,3 +509,38 @@ def test_oracle_beats_random_agent():
     random_returns = [play_trial(env, random_agent, seed=s)["execution_returns"][0] for s in range(100)]
     assert min(oracle_returns) >= 0.2 - 1e-9
     assert np.mean(random_returns) < 0.0 < np.mean(oracle_returns)
+
+
+class _Looper(ScriptedAgent):
+    """Opens fridge 1 while exploring, then in execution steps right and loops pickup/drop there."""
+
+    def act(self, obs, info):
+        x = int(obs["obs"][0])
+        if int(obs["phase"]) == EXPLORATION:
+            if int(obs["prev_action"]) - 1 == PICKUP:
+                return END_EPISODE
+            return PICKUP if x == 2 else RIGHT
+        if x != 2:
+            return RIGHT
+        return DROP if int(obs["prev_action"]) - 1 == PICKUP else PICKUP
+
+
+def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
+    env = gym.make("MetaCook-v0", split="train", n_exec_episodes=2)
+    oracle = behaviour_report(env, env.unwrapped.oracle(), n_trials=20)
+    assert oracle.fridges_opened.tolist() == [3] * 20 and oracle.exploration_lengths.tolist() == [8] * 20
+    assert len(oracle.execution_returns) == 40 and oracle.finished.all() and not oracle.ruined.any()
+    assert np.allclose(oracle.execution_returns, oracle.optimal_returns) and not oracle.undos.any()
+    assert "recipe finished in 100% of execution episodes (100% optimally)" in oracle.summary()
+
+    # Problem (4, 7, 6): the looper picks 7 from fridge 1 ten times and lets it go nine times. When the
+    # recipe starts with 7, each pick advances (+0.25) and each let-go undoes (-0.35): 9 undos and a
+    # return of -0.1 + 2.5 - 3.15 = -0.75; otherwise every step costs -0.1 (-2.0), no undo.
+    looper = behaviour_report(env, _Looper(), n_trials=20, problem_ids=[PROBLEM])
+    assert looper.fridges_opened.tolist() == [1] * 20 and looper.exploration_lengths.tolist() == [3] * 20
+    assert not looper.finished.any() and not looper.ruined.any()
+    loops = looper.undos == 9
+    assert set(looper.undos.tolist()) == {0, 9}
+    assert np.allclose(looper.execution_returns, np.where(loops, -0.75, -2.0))
+    with pytest.raises(ValueError, match="MetaCook-v0"):
+        behaviour_report(gym.make("MetaBandit-v0"), _Looper(), n_trials=1)
