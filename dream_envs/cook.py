@@ -501,18 +501,29 @@ class CookReport:
 
     Per trial: how many fridges it opened (picked from) while exploring, and the exploration
     length. Per execution episode: its return next to the optimal one for its problem and recipe,
-    whether it finished the recipe or ruined the dish, and how many of its steps set the recipe
-    back (an undo: letting go of a needed ingredient). Undos in episodes that end unfinished are
-    the sign of a policy that loops pickup/drop instead of cooking.
+    the recipe stage it ended at (:func:`recipe_stage`: 4 finished, -1 ruined dish), and how many
+    of its steps set the recipe back (an undo: letting go of a needed ingredient). Undos in
+    episodes that end unfinished are the sign of a policy that loops pickup/drop instead of cooking.
     """
 
     fridges_opened: np.ndarray  # [n_trials] 0..3
     exploration_lengths: np.ndarray  # [n_trials]
     execution_returns: np.ndarray  # [n_episodes]
     optimal_returns: np.ndarray  # [n_episodes]
-    finished: np.ndarray  # [n_episodes] bool
-    ruined: np.ndarray  # [n_episodes] bool
+    stages: np.ndarray  # [n_episodes] RUINED, 0..DONE_STAGE
     undos: np.ndarray  # [n_episodes] steps that set the recipe back
+
+    @property
+    def finished(self) -> np.ndarray:
+        return self.stages == DONE_STAGE
+
+    @property
+    def ruined(self) -> np.ndarray:
+        return self.stages == RUINED
+
+    def stage_counts(self) -> Dict[int, int]:
+        """How many execution episodes ended at each stage (RUINED, 0, ..., DONE_STAGE)."""
+        return {stage: int((self.stages == stage).sum()) for stage in range(RUINED, DONE_STAGE + 1)}
 
     def summary(self) -> str:
         counts = np.bincount(self.fridges_opened, minlength=N_FRIDGES + 1)
@@ -523,7 +534,8 @@ class CookReport:
             f"recipe finished in {self.finished.mean():.0%} of execution episodes "
             f"({np.isclose(self.execution_returns, self.optimal_returns).mean():.0%} optimally), "
             f"dish ruined in {self.ruined.mean():.0%}, undos per episode {self.undos.mean():.2f} "
-            f"(episodes with one: {(self.undos > 0).mean():.0%})"
+            f"(episodes with one: {(self.undos > 0).mean():.0%}); episodes ending at stage -1..4: "
+            f"{list(self.stage_counts().values())}"
         )
 
 
@@ -592,6 +604,6 @@ def behaviour_report(
         for (instruction, actions), ret in zip(recorder.episodes, result["execution_returns"]):
             stage, undos = _replay_execution(contents, instruction, actions)
             optimal = optimal_execution_return(problem_id, instruction)
-            episodes.append((ret, optimal, stage == DONE_STAGE, stage == RUINED, undos))
-    returns, optimal, finished, ruined, undos = (np.array(column) for column in zip(*episodes))
-    return CookReport(np.array(opened), np.array(lengths), returns, optimal, finished, ruined, undos)
+            episodes.append((ret, optimal, stage, undos))
+    returns, optimal, stages, undos = (np.array(column) for column in zip(*episodes))
+    return CookReport(np.array(opened), np.array(lengths), returns, optimal, stages, undos)

@@ -532,6 +532,7 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     assert len(oracle.execution_returns) == 40 and oracle.finished.all() and not oracle.ruined.any()
     assert np.allclose(oracle.execution_returns, oracle.optimal_returns) and not oracle.undos.any()
     assert "recipe finished in 100% of execution episodes (100% optimally)" in oracle.summary()
+    assert oracle.stage_counts() == {-1: 0, 0: 0, 1: 0, 2: 0, 3: 0, 4: 40}
 
     # Problem (4, 7, 6): the looper picks 7 from fridge 1 ten times and lets it go nine times. When the
     # recipe starts with 7, each pick advances (+0.25) and each let-go undoes (-0.35): 9 undos and a
@@ -540,6 +541,7 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     assert looper.fridges_opened.tolist() == [1] * 20 and looper.exploration_lengths.tolist() == [3] * 20
     assert not looper.finished.any() and not looper.ruined.any()
     loops = looper.undos == 9
+    assert looper.stages.tolist() == np.where(loops, 1, 0).tolist()  # ends holding 7 (a pick is last)
     assert set(looper.undos.tolist()) == {0, 9}
     assert np.allclose(looper.execution_returns, np.where(loops, -0.75, -2.0))
     with pytest.raises(ValueError, match="MetaCook-v0"):
