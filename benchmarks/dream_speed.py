@@ -7,6 +7,7 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
 
     python benchmarks/dream_speed.py --env MetaBus-v0 --steps 4000 --n-envs 1 8 [--threads 1]
     python benchmarks/dream_speed.py --parallel-updates      # DREAM(parallel_updates=True): 2 cores
+    python benchmarks/dream_speed.py --compile               # torch.compile the networks' forwards
 """
 
 from __future__ import annotations
@@ -34,10 +35,19 @@ def timed(obj, name: str, totals: dict, key: str) -> None:
     setattr(obj, name, wrapper)
 
 
-def measure(env_id: str, env_kwargs: dict, n_envs: int, steps: int, warmup: int, seed: int, **dream_kwargs) -> dict:
+NETWORKS = ("encoder", "decoder", "execution_q", "exploration_q")
+
+
+def measure(
+    env_id: str, env_kwargs: dict, n_envs: int, steps: int, warmup: int, seed: int, compile: bool = False, **kwargs
+) -> dict:
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
-    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **dream_kwargs)
-    model.learn(warmup)  # fill the buffers so that both agents update from here on
+    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+    if compile:  # every network and its target; trajectory lengths vary, hence dynamic shapes
+        for name in NETWORKS + tuple(f"{n}_target" for n in NETWORKS):
+            network = getattr(model.policy, name)
+            network.forward = th.compile(network.forward, dynamic=True)
+    model.learn(warmup)  # fill the buffers (and compile) so that both agents update from here on
     totals: dict = defaultdict(float)
     timed(model.env, "step", totals, "env")
     timed(model, "_act", totals, "act")
@@ -62,18 +72,19 @@ def main() -> None:
     parser.add_argument(
         "--parallel-updates", action="store_true", help="exploration and execution updates in two threads"
     )
+    parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env_kwargs = {"variant": args.variant} if args.variant else {}
     print(
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
-        f" parallel_updates={args.parallel_updates}"
+        f" parallel_updates={args.parallel_updates} compile={args.compile}"
     )
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
         r = measure(
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
-            train_freq=args.train_freq, parallel_updates=args.parallel_updates,
+            compile=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
