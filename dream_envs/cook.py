@@ -281,8 +281,8 @@ class MetaCookEnv(TrialEnv):
         render_mode: Optional[str] = None,
     ) -> None:
         horizon = check_positive_int("horizon", horizon)
-        if not -1.0 <= undo_reward <= 0.0:
-            raise ValueError(f"undo_reward={undo_reward!r} must be a penalty in [-1, 0]")
+        if isinstance(undo_reward, bool) or not isinstance(undo_reward, (int, float)) or not -1 <= undo_reward <= 0:
+            raise ValueError(f"undo_reward={undo_reward!r} must be a penalty, a number in [-1, 0]")
         self.undo_reward = float(undo_reward)
         super().__init__(
             inner_observation_space=spaces.MultiDiscrete([GRID_SIZE, GRID_SIZE, 5] + [N_INGREDIENTS + 1] * 3),

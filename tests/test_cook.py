@@ -243,8 +243,9 @@ def test_undo_reward_option_and_why_the_default_adds_the_step_penalty():
         run(env, [RIGHT])
         rewards, _ = run(env, [PICKUP, DROP])
         assert sum(rewards) == pytest.approx(pair) and env.stage == 0
-    with pytest.raises(ValueError, match="undo_reward"):
-        make(undo_reward=0.5)
+    for bad in (0.5, -1.5, float("nan"), "-0.25", None):
+        with pytest.raises(ValueError, match="undo_reward"):
+            make(undo_reward=bad)
 
 
 def test_end_episode_costs_the_remaining_steps():
