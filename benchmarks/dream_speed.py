@@ -39,11 +39,18 @@ NETWORKS = ("encoder", "decoder", "execution_q", "exploration_q")
 
 
 def measure(
-    env_id: str, env_kwargs: dict, n_envs: int, steps: int, warmup: int, seed: int, compile: bool = False, **kwargs
+    env_id: str,
+    env_kwargs: dict,
+    n_envs: int,
+    steps: int,
+    warmup: int,
+    seed: int,
+    compile_networks: bool = False,
+    **kwargs,
 ) -> dict:
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
     model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
-    if compile:  # every network and its target; trajectory lengths vary, hence dynamic shapes
+    if compile_networks:  # every network and its target; trajectory lengths vary, hence dynamic shapes
         for name in NETWORKS + tuple(f"{n}_target" for n in NETWORKS):
             network = getattr(model.policy, name)
             network.forward = th.compile(network.forward, dynamic=True)
@@ -84,7 +91,7 @@ def main() -> None:
     for n in args.n_envs:
         r = measure(
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
-            compile=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
+            compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
