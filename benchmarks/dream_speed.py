@@ -8,6 +8,8 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
     python benchmarks/dream_speed.py --env MetaBus-v0 --steps 4000 --n-envs 1 8 [--threads 1]
     python benchmarks/dream_speed.py --parallel-updates      # DREAM(parallel_updates=True): 2 cores
     python benchmarks/dream_speed.py --compile               # torch.compile the networks' forwards
+    python benchmarks/dream_speed.py --execution-target-z encoder   # the authors' target z
+    python benchmarks/dream_speed.py --n-envs 1 --profile 60 # + torch.profiler over 60 updates
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ def measure(
     warmup: int,
     seed: int,
     compile_networks: bool = False,
+    profile_updates: int = 0,
     **kwargs,
 ) -> dict:
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
@@ -62,8 +65,22 @@ def measure(
     start = time.perf_counter()
     model.learn(steps, reset_num_timesteps=False)
     wall = time.perf_counter() - start
+    result = {"sps": steps / wall, "wall": wall, **{k: v / wall for k, v in totals.items()}}
+    if profile_updates:
+        result["profile"] = profile(model, profile_updates)
     env.close()
-    return {"sps": steps / wall, "wall": wall, **{k: v / wall for k, v in totals.items()}}
+    return result
+
+
+def profile(model: DREAM, n_updates: int) -> str:
+    """torch.profiler's operator table over ``n_updates`` updates (one of each part, batch 32)."""
+    with th.profiler.profile(activities=[th.profiler.ProfilerActivity.CPU]) as prof:
+        model.train(n_updates, model.batch_size)
+    ops = prof.key_averages()
+    total = sum(op.self_cpu_time_total for op in ops)
+    lstm = sum(op.self_cpu_time_total for op in ops if "rnn" in op.key or "lstm" in op.key)
+    table = ops.table(sort_by="self_cpu_time_total", row_limit=15)
+    return f"{table}\n{total / n_updates / 1e3:.1f} ms per update, {lstm / total:.0%} of it in LSTM kernels"
 
 
 def main() -> None:
@@ -80,21 +97,27 @@ def main() -> None:
         "--parallel-updates", action="store_true", help="exploration and execution updates in two threads"
     )
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
+    parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
+    parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
     env_kwargs = {"variant": args.variant} if args.variant else {}
     print(
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
         f" parallel_updates={args.parallel_updates} compile={args.compile}"
+        f" execution_target_z={args.execution_target_z}"
     )
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
         r = measure(
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
             compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
+            execution_target_z=args.execution_target_z, profile_updates=args.profile,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
+        if "profile" in r:
+            print(r["profile"])
 
 
 if __name__ == "__main__":

@@ -243,6 +243,30 @@ def test_decoder_and_bottleneck_learn_from_the_execution_samples_only():
     assert not all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
 
 
+@pytest.mark.parametrize("choice", ["own", "encoder"])
+def test_execution_target_z_picks_what_the_target_q_conditions_on(choice, tmp_path):
+    model = DREAM("MetaBus-v0", seed=1, execution_target_z=choice, **FAST)
+    model.learn(300)
+    policy, decoder_calls, target_z = model.policy, [], []
+    policy.decoder_target.register_forward_hook(lambda m, i, o: decoder_calls.append(o.shape))
+    q_values = policy.execution_q_target.q_values
+    policy.execution_q_target.q_values = lambda e, z: target_z.append(z) or q_values(e, z)
+    model._update(8, exploration_ready=False, execution_ready=True)
+    (z,) = target_z
+    if choice == "own":  # rows [0, 8) from the target decoder, [8, 16) from the target encoder
+        assert len(decoder_calls) == 1 and not th.allclose(z[:8], z[8:])
+    else:  # the authors' code: the target encoder's f for both losses, no decoder pass
+        assert decoder_calls == [] and th.equal(z[:8], z[8:])
+    model.save(tmp_path / "model.zip")
+    assert DREAM.load(tmp_path / "model.zip").execution_target_z == choice
+
+
+def test_execution_target_z_rejects_other_values():
+    accepted = "execution_target_z='decoder' is not valid; accepted values: 'own', 'encoder'"
+    with pytest.raises(ValueError, match=accepted):
+        DREAM("MetaBus-v0", execution_target_z="decoder")
+
+
 def test_parallel_updates_compute_what_sequential_updates_do(tmp_path):
     def trained(parallel: bool) -> DREAM:
         model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, **FAST)

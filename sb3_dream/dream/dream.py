@@ -46,6 +46,7 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
 from dream_envs import EXECUTION, EXPLORATION, ScriptedAgent
+from dream_envs.core import check_choice
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
@@ -54,6 +55,8 @@ from sb3_dream.dream.policies import DreamPolicy
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 
 REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
+# What the execution Q's target conditions on (DREAM(execution_target_z=...)).
+EXECUTION_TARGET_Z = ("own", "encoder")
 
 
 @dataclass
@@ -140,6 +143,12 @@ class DREAM(TrialOffPolicyAlgorithm):
         rewards are computed). The same computations and the same results as sequential updates
         (tested); faster when a second CPU core is free for this run, slower when it is not (for
         example several runs sharing the cores).
+    :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
+        (default): each loss's own source through the target networks, the target decoder's
+        g(tau^exp) for the loss with z from g and the target encoder's f(T) for the loss with z from
+        f. ``"encoder"``: the target encoder's f(T) for both, as in the authors' code (their target
+        network always embedded the problem ID); it saves the target decoder's LSTM pass over the
+        execution batch's trajectories (see the README's Speed section).
     :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
         Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also
         sees the step within its episode, so a greedy policy need not repeat itself on a second
@@ -175,6 +184,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         z_dim: int = 64,
         bootstrap_at_horizon: bool = False,
         parallel_updates: bool = False,
+        execution_target_z: str = "own",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -200,6 +210,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         ]:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
                 raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+        check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         if encoder_variance < 0 or bottleneck_threshold < 0 or bottleneck_weight < 0:
             raise ValueError("encoder_variance, bottleneck_threshold and bottleneck_weight must be >= 0")
 
@@ -240,6 +251,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.z_dim = z_dim
         self.bootstrap_at_horizon = bootstrap_at_horizon
         self.parallel_updates = bool(parallel_updates)
+        self.execution_target_z = execution_target_z
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
         if self.env is not None:
@@ -724,11 +736,15 @@ class DREAM(TrialOffPolicyAlgorithm):
             next_online = policy.execution_q.q_values(
                 policy.execution_q.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1), z
             )
-            z_g_target = policy.decoder_target(traj.states, traj.actions)[rows, lengths]
             z_f_target = policy.encoder_target(traj.problem_features)
+            if self.execution_target_z == "own":
+                z_g_target = policy.decoder_target(traj.states, traj.actions)[rows, lengths]
+                z_target = th.cat([z_g_target, z_f_target])
+            else:  # "encoder": the authors' code, no decoder pass
+                z_target = z_f_target.repeat(2, 1)
             next_target = policy.execution_q_target.q_values(
                 policy.execution_q_target.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1),
-                th.cat([z_g_target, z_f_target]),
+                z_target,
             )
             best = next_online.argmax(dim=1, keepdim=True)
             target = rewards + self.gamma * (1.0 - dones) * next_target.gather(1, best).squeeze(1)
