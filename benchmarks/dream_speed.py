@@ -9,6 +9,7 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
     python benchmarks/dream_speed.py --parallel-updates      # DREAM(parallel_updates=True): 2 cores
     python benchmarks/dream_speed.py --compile               # torch.compile the networks' forwards
     python benchmarks/dream_speed.py --execution-target-z encoder   # the authors' target z
+    python benchmarks/dream_speed.py --fused-adam            # torch.optim.Adam(fused=True)
     python benchmarks/dream_speed.py --n-envs 1 --profile 60 # + torch.profiler over 60 updates
 """
 
@@ -98,6 +99,7 @@ def main() -> None:
     )
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
+    parser.add_argument("--fused-adam", action="store_true", help="policy_kwargs optimizer_kwargs fused=True")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
@@ -105,14 +107,15 @@ def main() -> None:
     print(
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
         f" parallel_updates={args.parallel_updates} compile={args.compile}"
-        f" execution_target_z={args.execution_target_z}"
+        f" execution_target_z={args.execution_target_z} fused Adam={args.fused_adam}"
     )
+    policy_kwargs = {"optimizer_kwargs": {"fused": True}} if args.fused_adam else None
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
         r = measure(
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
             compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
-            execution_target_z=args.execution_target_z, profile_updates=args.profile,
+            execution_target_z=args.execution_target_z, profile_updates=args.profile, policy_kwargs=policy_kwargs,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
