@@ -504,6 +504,9 @@ class CookReport:
     the recipe stage it ended at (:func:`recipe_stage`: 4 finished, -1 ruined dish), and how many
     of its steps set the recipe back (an undo: letting go of a needed ingredient). Undos in
     episodes that end unfinished are the sign of a policy that loops pickup/drop instead of cooking.
+    ``second_picks`` says what the agent fetched once A was in the pot: a policy that has learned
+    recipes as whole pairs, not as "A, then B", fetches the second ingredient of a recipe it was
+    trained on (A again, or another) when given an unseen pair (see :meth:`second_pick_counts`).
     """
 
     fridges_opened: np.ndarray  # [n_trials] 0..3
@@ -512,6 +515,9 @@ class CookReport:
     optimal_returns: np.ndarray  # [n_episodes]
     stages: np.ndarray  # [n_episodes] RUINED, 0..DONE_STAGE
     undos: np.ndarray  # [n_episodes] steps that set the recipe back
+    instructions: np.ndarray  # [n_episodes, 2] the recipe (A, B)
+    # [n_episodes] the ingredient of the first pickup once A was in the pot: 0 none, -1 A never was
+    second_picks: np.ndarray
 
     @property
     def finished(self) -> np.ndarray:
@@ -525,6 +531,18 @@ class CookReport:
         """How many execution episodes ended at each stage (RUINED, 0, ..., DONE_STAGE)."""
         return {stage: int((self.stages == stage).sum()) for stage in range(RUINED, DONE_STAGE + 1)}
 
+    def second_pick_counts(self) -> Dict[str, int]:
+        """Of the episodes that put A in the pot, how many then fetched B (right), A again, another
+        ingredient, or none."""
+        a, b, pick = self.instructions[:, 0], self.instructions[:, 1], self.second_picks
+        reached = pick >= 0
+        return {
+            "B": int((reached & (pick == b)).sum()),
+            "A": int((reached & (pick == a) & (pick != b)).sum()),
+            "other": int((reached & (pick > 0) & (pick != a) & (pick != b)).sum()),
+            "none": int((pick == 0).sum()),
+        }
+
     def summary(self) -> str:
         counts = np.bincount(self.fridges_opened, minlength=N_FRIDGES + 1)
         return (
@@ -535,7 +553,7 @@ class CookReport:
             f"({np.isclose(self.execution_returns, self.optimal_returns).mean():.0%} optimally), "
             f"dish ruined in {self.ruined.mean():.0%}, undos per episode {self.undos.mean():.2f} "
             f"(episodes with one: {(self.undos > 0).mean():.0%}); episodes ending at stage -1..4: "
-            f"{list(self.stage_counts().values())}"
+            f"{list(self.stage_counts().values())}; with A in the pot, fetched next: {self.second_pick_counts()}"
         )
 
 
@@ -564,17 +582,24 @@ class _CookRecorder(ScriptedAgent):
         return action
 
 
-def _replay_execution(contents: Sequence[int], instruction: Tuple[int, int], actions: Sequence[int]) -> Tuple[int, int]:
-    """The stage an execution episode's ``actions`` reach, and how many of them set the recipe back."""
-    state, stage, undos = (*START, 0, 0, 0), 0, 0
+def _replay_execution(
+    contents: Sequence[int], instruction: Tuple[int, int], actions: Sequence[int]
+) -> Tuple[int, int, int]:
+    """The stage an execution episode's ``actions`` reach, how many of them set the recipe back, and
+    the ingredient first picked up once A was in the pot (0 none, -1 if A never was)."""
+    state, stage, undos, second_pick = (*START, 0, 0, 0), 0, 0, -1
     for action in actions:
         if action == END_EPISODE:
             break
         state, _, _ = cook_transition(state, action, contents, None)
         new_stage = recipe_stage(state[2], (state[3], state[4]), instruction)
+        if second_pick == -1 and state[3] == instruction[0]:
+            second_pick = 0  # A is in the pot (a wrong first drop ruins the dish and never gets here)
+        elif second_pick == 0 and action == PICKUP and state[0] == FRIDGE_POS[0][0]:
+            second_pick = state[2]
         undos += new_stage < stage
         stage = new_stage
-    return stage, undos
+    return stage, undos, second_pick
 
 
 def behaviour_report(
@@ -602,8 +627,8 @@ def behaviour_report(
         opened.append(len(recorder.opened))
         lengths.append(result["exploration_length"])
         for (instruction, actions), ret in zip(recorder.episodes, result["execution_returns"]):
-            stage, undos = _replay_execution(contents, instruction, actions)
+            stage, undos, second_pick = _replay_execution(contents, instruction, actions)
             optimal = optimal_execution_return(problem_id, instruction)
-            episodes.append((ret, optimal, stage, undos))
-    returns, optimal, stages, undos = (np.array(column) for column in zip(*episodes))
-    return CookReport(np.array(opened), np.array(lengths), returns, optimal, stages, undos)
+            episodes.append((ret, optimal, stage, undos, instruction, second_pick))
+    returns, optimal, stages, undos, instructions, second_picks = (np.array(column) for column in zip(*episodes))
+    return CookReport(np.array(opened), np.array(lengths), returns, optimal, stages, undos, instructions, second_picks)

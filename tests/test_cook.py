@@ -27,6 +27,7 @@ from dream_envs.cook import (
     RUINED,
     UP,
     MetaCookEnv,
+    _replay_execution,
     behaviour_report,
     cook_transition,
     fridge_contents,
@@ -534,6 +535,8 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     assert np.allclose(oracle.execution_returns, oracle.optimal_returns) and not oracle.undos.any()
     assert "recipe finished in 100% of execution episodes (100% optimally)" in oracle.summary()
     assert oracle.stage_counts() == {-1: 0, 0: 0, 1: 0, 2: 0, 3: 0, 4: 40}
+    assert oracle.second_pick_counts() == {"B": 40, "A": 0, "other": 0, "none": 0}
+    assert (oracle.second_picks == oracle.instructions[:, 1]).all()
 
     # Problem (4, 7, 6): the looper picks 7 from fridge 1 ten times and lets it go nine times. When the
     # recipe starts with 7, each pick advances (+0.25) and each let-go undoes (-0.35): 9 undos and a
@@ -545,5 +548,19 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     assert looper.stages.tolist() == np.where(loops, 1, 0).tolist()  # ends holding 7 (a pick is last)
     assert set(looper.undos.tolist()) == {0, 9}
     assert np.allclose(looper.execution_returns, np.where(loops, -0.75, -2.0))
+    assert looper.second_picks.tolist() == [-1] * 40  # never puts anything in the pot
+    assert looper.second_pick_counts() == {"B": 0, "A": 0, "other": 0, "none": 0}
     with pytest.raises(ValueError, match="MetaCook-v0"):
         behaviour_report(gym.make("MetaBandit-v0"), _Looper(), n_trials=1)
+
+
+def test_replay_execution_tells_what_was_fetched_once_the_first_ingredient_was_in_the_pot():
+    contents, recipe = (4, 7, 6), (7, 6)  # fridge 0 at (2, 0) holds 4, fridge 1 7, fridge 2 6
+    put_a_in = [RIGHT, PICKUP, LEFT, DROP]  # 7 from fridge 1 into the pot: stage 2
+    assert _replay_execution(contents, recipe, put_a_in + [RIGHT, UP, PICKUP, DOWN, LEFT, DROP]) == (4, 0, 6)
+    assert _replay_execution(contents, recipe, put_a_in + [RIGHT, PICKUP]) == (2, 0, 7)  # A again
+    assert _replay_execution(contents, recipe, put_a_in + [RIGHT, DOWN, PICKUP]) == (2, 0, 4)  # another
+    assert _replay_execution(contents, recipe, put_a_in + [NOOP]) == (2, 0, 0)  # none
+    assert _replay_execution(contents, recipe, [RIGHT, DOWN, PICKUP, UP, PICKUP]) == (1, 0, -1)  # A not in yet
+    ruined = [RIGHT, DOWN, PICKUP, LEFT, UP, DROP, RIGHT, UP, PICKUP]  # 4 into the pot first
+    assert _replay_execution(contents, recipe, ruined) == (-1, 1, -1)  # ruining the dish sets it back
