@@ -18,7 +18,8 @@ problem of the split instead of drawing them.
 ``--diagnose`` (DREAM only) also runs :func:`sb3_dream.dream.diagnose`: the same trials once more
 with the execution policy given the privileged z = f(T), to tell whether exploration (and the
 decoder) or execution limits the model, and once more with z ~ N(f(T), rho^2 I), the noisy code
-the execution policy trains on.
+the execution policy trains on. With ``--exploration`` too, the behaviour report is also made
+for that privileged agent (z = f(T)): what execution does when the code is exactly right.
 
 ``--exploration`` reports what each agent does, as the paper's Figures 7 and 8 show it. MetaBus-v0:
 colored and gray routes ridden while exploring, whether it read the map
@@ -39,6 +40,7 @@ import zipfile
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 
 import dream_envs
 from dream_envs import RandomAgent
@@ -117,6 +119,17 @@ def main() -> None:
         for name, agent in agents.items():
             report = reports[args.env](env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
             print(f"  {name:>20} exploring: {report.summary()}")
+        if args.diagnose:  # the same report with execution on the privileged z = f(T)
+            from sb3_dream.dream import DREAM, PrivilegedAgent
+
+            ids = problem_ids
+            if ids is None:  # drawn as diagnose() draws them
+                split_ids = env.unwrapped.problem_ids(args.split)
+                ids = np.random.default_rng(args.seed).choice(split_ids, size=args.trials)
+            for name, model in zip(names.values(), models.values()):
+                if isinstance(model, DREAM):
+                    report = reports[args.env](env, PrivilegedAgent(model, ids), args.trials, args.seed, ids)
+                    print(f"  {name:>20} with z = f(T): {report.summary()}")
     if args.diagnose:
         from sb3_dream.dream import DREAM, diagnose
 

@@ -445,6 +445,14 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
         by_problem = np.stack([means[v] for v in features[:, k]]) - f.mean(0)
         assert explained == pytest.approx(float((by_problem**2).sum(1).mean()), rel=1e-4)
 
+    # The privileged agent is public, for reports: on the same trials it scores diagnose's return_f.
+    from sb3_dream.dream import PrivilegedAgent
+
+    privileged = PrivilegedAgent(bus_model, ids, "f")
+    assert evaluate_meta(privileged, "MetaBus-v0", n_trials=4, seed=7, problem_ids=ids).mean == d.return_f
+    with pytest.raises(ValueError, match="z_source='h' is not valid; accepted values: 'g', 'f', 'f_noisy'"):
+        PrivilegedAgent(bus_model, ids, "h")
+
     # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
     def perfect_decoder(state, idx, n):
         return bus_model._encode(np.full(len(idx), 40), noisy=False)

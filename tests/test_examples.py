@@ -95,6 +95,7 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert "optimal (scripted) exploring: colored routes seen 0.00" in out
     assert "map read 100%, exploration length 5.0, execution return 0.800" in out
     assert "DREAM exploring: colored routes seen" in out and "random exploring:" in out
+    assert "DREAM with z = f(T): colored routes seen" in out  # the report for the privileged agent
     # several models: one line each, named by their files, and one diagnosis each
     copy = tmp_path / "copy.zip"
     shutil.copy(model, copy)

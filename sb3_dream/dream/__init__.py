@@ -1,5 +1,5 @@
-from sb3_dream.dream.diagnostics import DreamDiagnosis, diagnose, f_variance_by_feature
+from sb3_dream.dream.diagnostics import DreamDiagnosis, PrivilegedAgent, diagnose, f_variance_by_feature
 from sb3_dream.dream.dream import DREAM
 from sb3_dream.dream.policies import DreamPolicy
 
-__all__ = ["DREAM", "DreamDiagnosis", "DreamPolicy", "diagnose", "f_variance_by_feature"]
+__all__ = ["DREAM", "DreamDiagnosis", "DreamPolicy", "PrivilegedAgent", "diagnose", "f_variance_by_feature"]

@@ -62,15 +62,21 @@ class DreamDiagnosis:
         return text
 
 
-class _DiagnosticAgent(DreamTrialAgent):
-    """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
-    f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``)."""
+Z_SOURCES = ("g", "f", "f_noisy")
 
-    def __init__(self, model: DREAM, problem_ids: np.ndarray, z_source: str, seed: int = 0) -> None:
-        self.z_source = z_source
+
+class PrivilegedAgent(DreamTrialAgent):
+    """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
+    f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``) of trial k's problem
+    ``problem_ids[k % len(problem_ids)]``: a diagnostic (it is handed the problem IDs), never a
+    meta-test agent. Play the trials in order on those problems (the trial runners' ``problem_ids=``)."""
+
+    def __init__(self, model: DREAM, problem_ids: Sequence[int], z_source: str = "f", seed: int = 0) -> None:
+        self.z_source = check_choice("z_source", z_source, Z_SOURCES)
         generator = th.Generator(device=model.device).manual_seed(seed)
         # trial k's code: f(T) of its problem (noisy for "f_noisy")
-        self.f = model._encode(problem_ids, noisy=z_source == "f_noisy", generator=generator)
+        ids = np.asarray(problem_ids, dtype=np.int64)
+        self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: List[np.ndarray] = []
         super().__init__(model, deterministic=True)
 
@@ -78,7 +84,7 @@ class _DiagnosticAgent(DreamTrialAgent):
         k = len(self.g)  # one exploration per trial, trials in order
         self.g.append(self.state.z[0].copy())
         if self.z_source != "g":
-            self.state.z[0] = self.f[k]
+            self.state.z[0] = self.f[k % len(self.f)]
 
 
 def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
@@ -127,8 +133,8 @@ def diagnose(
     problem_ids = np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
 
     results, agents = {}, {}
-    for source in ("g", "f", "f_noisy") if model.encoder_noise else ("g", "f"):
-        agents[source] = _DiagnosticAgent(model, problem_ids, source, seed)
+    for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
+        agents[source] = PrivilegedAgent(model, problem_ids, source, seed)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
     features = trial_env.unwrapped.problem_feature_table()[split_ids]
     if isinstance(env, str):
