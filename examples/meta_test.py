@@ -40,7 +40,6 @@ import zipfile
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 import dream_envs
 from dream_envs import RandomAgent
@@ -120,12 +119,10 @@ def main() -> None:
             report = reports[args.env](env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
             print(f"  {name:>20} exploring: {report.summary()}")
         if args.diagnose:  # the same report with execution on the privileged z = f(T)
-            from sb3_dream.dream import DREAM, PrivilegedAgent
+            from sb3_dream.dream import DREAM, PrivilegedAgent, trial_problem_ids
 
-            ids = problem_ids
-            if ids is None:  # drawn as diagnose() draws them
-                split_ids = env.unwrapped.problem_ids(args.split)
-                ids = np.random.default_rng(args.seed).choice(split_ids, size=args.trials)
+            split_ids = env.unwrapped.problem_ids(args.split)
+            ids = trial_problem_ids(split_ids, args.trials, args.seed, problem_ids)  # diagnose()'s trials
             for name, model in zip(names.values(), models.values()):
                 if isinstance(model, DREAM):
                     report = reports[args.env](env, PrivilegedAgent(model, ids), args.trials, args.seed, ids)

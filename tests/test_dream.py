@@ -449,6 +449,13 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     from sb3_dream.dream import PrivilegedAgent
 
     privileged = PrivilegedAgent(bus_model, ids, "f")
+    from sb3_dream.dream import trial_problem_ids  # the trials diagnose plays
+
+    assert trial_problem_ids(split_ids, 6, seed=7, problem_ids=ids).tolist() == ids + ids[:2]
+    drawn = np.random.default_rng(7).choice(split_ids, size=4)
+    assert trial_problem_ids(split_ids, 4, seed=7).tolist() == drawn.tolist()
+    with pytest.raises(ValueError, match="problem_ids must not be empty"):
+        trial_problem_ids(split_ids, 4, problem_ids=[])
     assert evaluate_meta(privileged, "MetaBus-v0", n_trials=4, seed=7, problem_ids=ids).mean == d.return_f
     with pytest.raises(ValueError, match="z_source='h' is not valid; accepted values: 'g', 'f', 'f_noisy'"):
         PrivilegedAgent(bus_model, ids, "h")

@@ -105,6 +105,19 @@ def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
     return shares
 
 
+def trial_problem_ids(
+    split_ids: Sequence[int], n_trials: int, seed: int = 0, problem_ids: Optional[Sequence[int]] = None
+) -> np.ndarray:
+    """The problem of each of ``n_trials`` trials, as :func:`diagnose` plays them: ``problem_ids``
+    cycled, or by default drawn uniformly from ``split_ids`` with ``seed``. Hand the result to
+    :class:`PrivilegedAgent` and to the trial runner (``problem_ids=``) to play the same trials."""
+    if problem_ids is None:
+        return np.random.default_rng(seed).choice(np.asarray(split_ids), size=n_trials)
+    if len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+    return np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
+
+
 def diagnose(
     model: DREAM,
     env: Union[str, gym.Env],
@@ -126,11 +139,7 @@ def diagnose(
     n_trials = check_positive_int("n_trials", n_trials)
     trial_env = _make_env(env, check_choice("split", split, SPLITS), 1, env_kwargs)
     split_ids = np.asarray(trial_env.unwrapped.problem_ids(split))
-    if problem_ids is None:
-        problem_ids = np.random.default_rng(seed).choice(split_ids, size=n_trials)
-    elif len(problem_ids) == 0:
-        raise ValueError("problem_ids must not be empty")
-    problem_ids = np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
+    problem_ids = trial_problem_ids(split_ids, n_trials, seed, problem_ids)
 
     results, agents = {}, {}
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
