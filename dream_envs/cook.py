@@ -8,6 +8,7 @@ generalisation (the paper's Figure 6, middle).
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -281,7 +282,8 @@ class MetaCookEnv(TrialEnv):
         render_mode: Optional[str] = None,
     ) -> None:
         horizon = check_positive_int("horizon", horizon)
-        if isinstance(undo_reward, bool) or not isinstance(undo_reward, (int, float)) or not -1 <= undo_reward <= 0:
+        # numbers.Real, so numpy scalars (e.g. from a config array) pass; bool is no penalty
+        if isinstance(undo_reward, bool) or not isinstance(undo_reward, numbers.Real) or not -1 <= undo_reward <= 0:
             raise ValueError(f"undo_reward={undo_reward!r} must be a penalty, a number in [-1, 0]")
         self.undo_reward = float(undo_reward)
         super().__init__(

@@ -244,9 +244,13 @@ def test_undo_reward_option_and_why_the_default_adds_the_step_penalty():
         run(env, [RIGHT])
         rewards, _ = run(env, [PICKUP, DROP])
         assert sum(rewards) == pytest.approx(pair) and env.stage == 0
-    for bad in (0.5, -1.5, float("nan"), "-0.25", None):
+    for bad in (0.5, -1.5, float("nan"), "-0.25", None, True, np.float32(0.5)):
         with pytest.raises(ValueError, match="undo_reward"):
             make(undo_reward=bad)
+    # numpy scalars are numbers too, and are stored as a Python float
+    for good in (np.float32(-0.3), np.int64(-1), -1):
+        env = make(undo_reward=good)
+        assert type(env.undo_reward) is float and env.undo_reward == pytest.approx(float(good))
 
 
 def test_end_episode_costs_the_remaining_steps():
