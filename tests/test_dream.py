@@ -446,11 +446,10 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
         assert explained == pytest.approx(float((by_problem**2).sum(1).mean()), rel=1e-4)
 
     # The privileged agent is public, for reports: on the same trials it scores diagnose's return_f.
-    from sb3_dream.dream import PrivilegedAgent
+    from sb3_dream.dream import PrivilegedAgent, trial_problem_ids
 
     privileged = PrivilegedAgent(bus_model, ids, "f")
-    from sb3_dream.dream import trial_problem_ids  # the trials diagnose plays
-
+    # the trials diagnose plays
     assert trial_problem_ids(split_ids, 6, seed=7, problem_ids=ids).tolist() == ids + ids[:2]
     drawn = np.random.default_rng(7).choice(split_ids, size=4)
     assert trial_problem_ids(split_ids, 4, seed=7).tolist() == drawn.tolist()
