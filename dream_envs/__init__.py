@@ -5,11 +5,16 @@ Importing this package registers ``MetaBus-v0``, ``MetaCook-v0``, ``SignNav3D-v0
 ``n_exec_episodes`` execution episodes (see :mod:`dream_envs.core`).
 """
 
+import importlib
+from typing import Tuple
+
+import gymnasium as gym
 from gymnasium.envs.registration import register, registry
 
 from dream_envs.core import (
     EXECUTION,
     EXPLORATION,
+    SPLITS,
     RandomAgent,
     ScriptedAgent,
     TrialEnv,
@@ -30,6 +35,26 @@ for _env_id, _entry_point in ENV_IDS.items():
         register(id=_env_id, entry_point=_entry_point)
 
 
+def env_splits(env_id: str) -> Tuple[str, ...]:
+    """The splits of a registered trial env (its class's ``splits``), without making the env.
+
+    ``env_id`` may name the module that registers it, as in ``gym.make("module:EnvId")``.
+    """
+    module, _, name = env_id.rpartition(":")
+    if module:
+        importlib.import_module(module)
+    entry_point = gym.spec(name).entry_point
+    if isinstance(entry_point, str):
+        module, _, name = entry_point.partition(":")
+        entry_point = getattr(importlib.import_module(module), name)
+    return tuple(getattr(entry_point, "splits", SPLITS))
+
+
+def all_splits() -> Tuple[str, ...]:
+    """Every split name that some env of this package offers ("train", "test", "all" first)."""
+    return tuple(dict.fromkeys(split for env_id in ENV_IDS for split in env_splits(env_id)))
+
+
 def make_oracle(env) -> ScriptedAgent:
     """The optimal scripted agent (optimal explorer + executor) of a trial env (or a wrapper of one)."""
     return env.unwrapped.oracle()
@@ -37,11 +62,14 @@ def make_oracle(env) -> ScriptedAgent:
 
 __all__ = [
     "ENV_IDS",
+    "SPLITS",
     "EXECUTION",
     "EXPLORATION",
     "RandomAgent",
     "ScriptedAgent",
     "TrialEnv",
+    "all_splits",
+    "env_splits",
     "make_oracle",
     "play_trial",
     "play_trials",

@@ -52,20 +52,25 @@ def evaluate(env_id: str, kwargs: dict, split: str, trials: int, seed: int) -> d
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", choices=list(dream_envs.ENV_IDS), help="only this env (default: all)")
-    parser.add_argument("--split", default="test", choices=["train", "test", "all"])
+    parser.add_argument(
+        "--split", default="test", choices=dream_envs.all_splits(), help="envs without this split are skipped"
+    )
     parser.add_argument("--trials", type=int, default=50, help="trials per agent (default 50)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     if args.trials < 1:
         parser.error("--trials must be >= 1")
 
-    rows = [(e, kw) for e, kw in DEFAULT_VARIANTS if args.env in (None, e)]
-    print(f"{'env':<28}{'split':<7}{'oracle return':>18}{'random return':>18}{'oracle explore len':>20}")
+    rows = [(e, kw) for e, kw in DEFAULT_VARIANTS if args.env in (None, e) and args.split in dream_envs.env_splits(e)]
+    if not rows:
+        offered = ", ".join(dream_envs.env_splits(args.env))
+        parser.error(f"--split {args.split} is not a split of {args.env}; accepted values: {offered}")
+    print(f"{'env':<28}{'split':<18}{'oracle return':>18}{'random return':>18}{'oracle explore len':>20}")
     for env_id, kwargs in rows:
         name = env_id + "".join(f" {k}={v}" for k, v in kwargs.items())
         r = evaluate(env_id, kwargs, args.split, args.trials, args.seed)
         (om, oh), (rm, rh) = r["oracle"], r["random"]
-        print(f"{name:<28}{args.split:<7}{om:>11.3f} ±{oh:5.3f}{rm:>11.3f} ±{rh:5.3f}{r['explore_len']:>20.1f}")
+        print(f"{name:<28}{args.split:<18}{om:>11.3f} ±{oh:5.3f}{rm:>11.3f} ±{rh:5.3f}{r['explore_len']:>20.1f}")
 
 
 if __name__ == "__main__":

@@ -60,6 +60,11 @@ HELD_OUT_PROBLEMS: Tuple[int, ...] = tuple(
 )  # (175, 217, 290), i.e. fridges (1, 5, 4), (1, 4, 5), (4, 7, 6)
 
 
+# The held-out split and its two parts, to tell the two kinds of generalisation apart: an unseen
+# kitchen with familiar recipes, and an unseen recipe in a familiar kitchen.
+COOK_SPLITS = (*SPLITS, "test_problems", "test_instructions")
+
+
 def fridge_contents(problem_id: int) -> Tuple[int, int, int]:
     """The problem's triple: fridge ``k`` holds ingredient ``1 + digit k of problem_id in base 7``.
 
@@ -172,7 +177,7 @@ def _split_tables() -> Dict[str, Tuple[np.ndarray, Dict[int, Tuple[Tuple[int, in
     """Per split: the sorted problem IDs and each problem's instructions."""
     held_problems, held_instr = set(HELD_OUT_PROBLEMS), set(HELD_OUT_INSTRUCTIONS)
     tables = {}
-    for split in ("train", "test", "all"):
+    for split in COOK_SPLITS:
         instructions: Dict[int, Tuple[Tuple[int, int], ...]] = {}
         for k in range(N_PROBLEMS):
             valid = valid_instructions(k)
@@ -180,8 +185,12 @@ def _split_tables() -> Dict[str, Tuple[np.ndarray, Dict[int, Tuple[Tuple[int, in
                 chosen = valid
             elif split == "train":
                 chosen = [] if k in held_problems else [i for i in valid if i not in held_instr]
-            else:
+            elif split == "test":
                 chosen = valid if k in held_problems else [i for i in valid if i in held_instr]
+            elif split == "test_problems":
+                chosen = [i for i in valid if i not in held_instr] if k in held_problems else []
+            else:  # "test_instructions"
+                chosen = [] if k in held_problems else [i for i in valid if i in held_instr]
             if chosen:
                 instructions[k] = tuple(chosen)
         tables[split] = (np.array(sorted(instructions), dtype=np.int64), instructions)
@@ -216,6 +225,12 @@ class MetaCookEnv(TrialEnv):
       such pairs, and two of the held-out problems are among them), 133 (problem, recipe) pairs.
       Every test problem thus has a held-out recipe.
     * ``"all"``: the 343 problems with all their recipes (2401 pairs).
+    * ``"test_problems"``: the part of ``"test"`` that tests an unseen kitchen alone: the 3 held-out
+      problems with their recipes that are not held out (25 pairs).
+    * ``"test_instructions"``: the part that tests an unseen recipe alone: the 106 training
+      problems holding both ingredients of a held-out recipe, with only those recipes (106 pairs).
+      ``"test"`` is these two and the 2 pairs that are both (a held-out recipe in a held-out
+      kitchen); most of its trials are of ``"test_instructions"``.
 
     In every split a problem is drawn uniformly from the split's, then a recipe uniformly from the
     problem's recipes in the split.
@@ -260,17 +275,20 @@ class MetaCookEnv(TrialEnv):
     **Returns.** With the contents known, the optimal execution return is
     ``1 - 0.2 (d_A + d_B)`` with ``d_X`` = 1 if the middle fridge holds X, else 2: 0.6, 0.4 or
     0.2 (:func:`optimal_execution_return`; needs a horizon of 12 or more). The mean over the
-    split's trials is 0.364 on "train" and 0.343 on "test"; uniformly random actions get about
+    split's trials is 0.364 on "train", 0.343 on "test" (0.328 on "test_problems", 0.343 on
+    "test_instructions"); uniformly random actions get about
     -1.98. The optimal explorer opens the three fridges in 7 steps and ends the episode
     (:meth:`oracle`).
 
-    :param split: "train", "test" or "all" (see above).
+    :param split: "train", "test", "all", "test_problems" or "test_instructions" (see above).
     :param n_exec_episodes: execution episodes per trial.
     :param horizon: inner-episode horizon (default 20, the paper's).
     :param reward_free_exploration: see :class:`~dream_envs.core.TrialEnv`.
     :param undo_reward: the reward of a step that sets the recipe back (default -0.35, see above).
     :param render_mode: ``None`` or ``"rgb_array"``.
     """
+
+    splits = COOK_SPLITS
 
     def __init__(
         self,
@@ -321,7 +339,7 @@ class MetaCookEnv(TrialEnv):
 
     def instructions(self, problem_id: int, split: Optional[str] = None) -> list[Tuple[int, int]]:
         """The recipes of ``problem_id`` in ``split`` (default: this env's split); empty if none."""
-        split = self.split if split is None else check_choice("split", split, SPLITS)
+        split = self.split if split is None else check_choice("split", split, self.splits)
         return list(_split_tables()[split][1].get(int(problem_id), ()))
 
     def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:

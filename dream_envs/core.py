@@ -47,12 +47,13 @@ execution returns.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, Dict, Iterator, Optional, Sequence, SupportsFloat
+from typing import Any, Dict, Iterator, Optional, Sequence, SupportsFloat, Tuple
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+# Every family has these splits; a family may add its own (``TrialEnv.splits``, e.g. MetaCook's).
 SPLITS = ("train", "test", "all")
 EXPLORATION, EXECUTION = 0, 1
 
@@ -78,7 +79,8 @@ class TrialEnv(gym.Env, ABC):
     :param n_actions: number of actions (``Discrete(n_actions)``).
     :param end_episode_action: the action that ends the current inner episode at once
         (the paper's a_term), or ``None`` if the family has none.
-    :param split: which problems (and instructions) are sampled: "train", "test" or "all".
+    :param split: which problems (and instructions) are sampled: "train", "test" or "all", or one of
+        the family's own :attr:`splits`.
     :param n_exec_episodes: the number N of execution episodes per trial.
     :param horizon: the inner-episode horizon (steps per exploration or execution episode).
     :param reward_free_exploration: if True (the paper's IMRL setting) the exploration episode has
@@ -90,6 +92,8 @@ class TrialEnv(gym.Env, ABC):
     """
 
     metadata: Dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 4}
+    splits: Tuple[str, ...] = SPLITS
+    """The splits this family offers: always "train", "test" and "all", then any of its own."""
 
     def __init__(
         self,
@@ -106,7 +110,7 @@ class TrialEnv(gym.Env, ABC):
         reward_bound: float = 10.0,
     ) -> None:
         super().__init__()
-        self.split = check_choice("split", split, SPLITS)
+        self.split = check_choice("split", split, self.splits)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
         self.horizon = check_positive_int("horizon", horizon)
         if not isinstance(reward_free_exploration, (bool, np.bool_)):
@@ -144,7 +148,7 @@ class TrialEnv(gym.Env, ABC):
 
     @abstractmethod
     def _split_problem_ids(self, split: str) -> np.ndarray:
-        """The sorted problem IDs of ``split`` ("train", "test" or "all")."""
+        """The sorted problem IDs of ``split`` (one of :attr:`splits`)."""
 
     @abstractmethod
     def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
@@ -199,7 +203,7 @@ class TrialEnv(gym.Env, ABC):
 
     def problem_ids(self, split: Optional[str] = None) -> np.ndarray:
         """The problem IDs of ``split`` (default: this env's split)."""
-        split = self.split if split is None else check_choice("split", split, SPLITS)
+        split = self.split if split is None else check_choice("split", split, self.splits)
         return np.asarray(self._split_problem_ids(split), dtype=np.int64)
 
     @property

@@ -70,7 +70,7 @@ def main() -> None:
     parser.add_argument(
         "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map"
     )
-    parser.add_argument("--split", default="test", choices=["train", "test", "all"], help="test = held-out problems")
+    parser.add_argument("--split", default="test", choices=dream_envs.all_splits(), help="test = held-out problems")
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--n-exec-episodes", type=int, default=1)
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")

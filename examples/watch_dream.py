@@ -153,7 +153,7 @@ def main() -> None:
     source.add_argument("--oracle", action="store_true", help="watch the env's optimal scripted agent instead")
     parser.add_argument("--env", default="MetaBus-v0")
     parser.add_argument("--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="e.g. variant=map")
-    parser.add_argument("--split", default="test", choices=["train", "test", "all"])
+    parser.add_argument("--split", default="test", choices=dream_envs.all_splits())
     parser.add_argument("--problem-id", type=int, default=None, help="pin the problem (default: drawn from --seed)")
     parser.add_argument("--n-exec-episodes", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)

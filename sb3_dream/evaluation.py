@@ -20,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import dream_envs
 from dream_envs import ScriptedAgent, play_trials
-from dream_envs.core import SPLITS, check_choice, check_positive_int
+from dream_envs.core import check_choice, check_positive_int
 
 
 class PolicyAgent(ScriptedAgent):
@@ -118,6 +118,7 @@ def _make_env(env: Union[str, gym.Env], split: str, n_exec_episodes: int, env_kw
     unwrapped = env.unwrapped
     if not isinstance(unwrapped, dream_envs.TrialEnv):
         raise TypeError(f"env must be a trial env (dream_envs.TrialEnv) or its ID, got {type(unwrapped).__name__}")
+    check_choice("split", split, unwrapped.splits)
     if unwrapped.split != split or unwrapped.n_exec_episodes != n_exec_episodes:
         raise ValueError(
             f"env has split={unwrapped.split!r}, n_exec_episodes={unwrapped.n_exec_episodes} but "
@@ -147,8 +148,7 @@ def evaluate_meta(
     """
     n_trials = check_positive_int("n_trials", n_trials)
     n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
-    check_choice("split", split, SPLITS)
-    trial_env = _make_env(env, split, n_exec_episodes, env_kwargs)
+    trial_env = _make_env(env, split, n_exec_episodes, env_kwargs)  # the env checks ``split``
     trials = play_trials(trial_env, as_trial_agent(agent, deterministic), n_trials, seed, problem_ids)
 
     start = time.perf_counter()
@@ -204,9 +204,9 @@ class MetaEvalCallback(BaseCallback):
         super().__init__(verbose)
         self.eval_freq = check_positive_int("eval_freq", eval_freq)
         self.n_trials = check_positive_int("n_trials", n_trials)
-        self.split = check_choice("split", split, SPLITS)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
-        self.eval_env = _make_env(eval_env, split, n_exec_episodes, env_kwargs)
+        self.eval_env = _make_env(eval_env, split, n_exec_episodes, env_kwargs)  # the env checks ``split``
+        self.split = split
         self.deterministic, self.seed, self.csv_path = deterministic, seed, csv_path
         self.best_model_save_path = best_model_save_path
         self.best_mean_reward = -np.inf

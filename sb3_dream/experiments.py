@@ -89,7 +89,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from dream_envs.core import SPLITS
+from dream_envs import all_splits, env_splits
 from sb3_dream.evaluation import CURVE_COLUMNS
 
 ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
@@ -201,9 +201,9 @@ class RunConfig:
             raise ValueError(
                 f"preset={self.preset!r} is not valid; accepted values: {', '.join(map(repr, PRESET_NAMES))}"
             )
-        if not self.eval_splits or any(s not in SPLITS for s in self.eval_splits):
+        if not self.eval_splits or any(s not in all_splits() for s in self.eval_splits):
             raise ValueError(
-                f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, SPLITS))}"
+                f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, all_splits()))}"
             )
         for name in ("checkpoint_freq", "snapshot_freq"):
             freq = getattr(self, name)
@@ -678,7 +678,7 @@ def finished_runs(out: pathlib.Path) -> List[Run]:
             run = Run(info["algo"], EnvSpec(info["env"], tuple(sorted(kwargs.items()))), int(info["seed"]))
         except (ValueError, KeyError, TypeError, AttributeError):
             continue  # not a run's record (an oracle's, say)
-        if run.info_path(out) == path and any(run.curve_path(out, split).exists() for split in SPLITS):
+        if run.info_path(out) == path and any(run.curve_path(out, split).exists() for split in all_splits()):
             found.append(run)
     order = {algo: k for k, algo in enumerate(ALGOS)}
     return sorted(found, key=lambda r: (r.env.tag, order.get(r.algo, len(order)), r.seed))
@@ -692,6 +692,16 @@ def _with_finished(runs: Sequence[Run], out: pathlib.Path) -> List[Run]:
     return list(merged.values())
 
 
+def check_eval_splits(runs: Sequence[Run], config: RunConfig) -> None:
+    """Raise a ``ValueError`` unless every env of ``runs`` offers every split of ``config.eval_splits``."""
+    for env in dict.fromkeys(run.env for run in runs):
+        offered = env_splits(env.env_id)
+        missing = [split for split in config.eval_splits if split not in offered]
+        if missing:
+            accepted = ", ".join(map(repr, offered))
+            raise ValueError(f"eval_splits={missing!r} is not valid for {env.label}; accepted values: {accepted}")
+
+
 def run_experiments(
     runs: Sequence[Run], config: RunConfig, out: pathlib.Path, jobs: Optional[int] = None, force: bool = False
 ) -> List[Dict[str, Any]]:
@@ -700,6 +710,7 @@ def run_experiments(
     Returns one record per run with ``status`` "done", "skipped" or "failed". ``jobs=1`` runs them
     one after the other in this process.
     """
+    check_eval_splits(runs, config)
     out = pathlib.Path(out)
     records: List[Dict[str, Any]] = []
     pending: List[Run] = []
@@ -912,7 +923,7 @@ def plot_curves(
             ax.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
         if oracles and (env.tag, split) in oracles:
             ax.axhline(oracles[(env.tag, split)], color="k", ls="--", lw=1, label="optimal")
-        ax.set_title(f"{env.label}" + ("" if split == "test" else f", {split} problems"))
+        ax.set_title(f"{env.label}" + ("" if split == "test" else f", {split} split"))
         ax.set_xlabel("env steps")
         ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
         ax.grid(alpha=0.3)
@@ -944,7 +955,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--preset", default="paper", choices=PRESET_NAMES)
     parser.add_argument("--eval-freq", type=int, default=10_000, help="env steps between evaluations")
     parser.add_argument("--eval-trials", type=int, default=100, help="meta-test trials per evaluation")
-    parser.add_argument("--eval-splits", nargs="+", default=["test"], choices=SPLITS, help="test = held-out problems")
+    parser.add_argument(
+        "--eval-splits",
+        nargs="+",
+        default=["test"],
+        choices=all_splits(),
+        help="test = held-out problems and instructions; MetaCook also has its parts test_problems, test_instructions",
+    )
     parser.add_argument("--dream-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="DREAM overrides")
     parser.add_argument("--rl2dqn-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="RL2DQN overrides")
     parser.add_argument("--jobs", type=int, default=None, help="parallel runs (default: the machine's cores)")
@@ -966,7 +983,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--select-on",
         default="",
-        choices=("", *SPLITS),
+        choices=("", *all_splits()),
         metavar="SPLIT",
         help="keep the model of the best evaluation on SPLIT (one of --eval-splits; train: an honest "
         "choice) under <env>/best/ and meta-test it on the held-out split at the end",
@@ -1012,6 +1029,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             init_from=args.init_from,
         )
         runs = plan_runs(args.algos, [EnvSpec.parse(e) for e in args.envs], args.seeds)
+        check_eval_splits(runs, config)
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
     except ValueError as error:

@@ -317,6 +317,30 @@ def test_split_sizes_and_disjointness():
         env.instructions(0, "valid")
 
 
+def test_the_held_out_split_parts_tell_an_unseen_kitchen_from_an_unseen_recipe():
+    env = make()
+    held = set(HELD_OUT_INSTRUCTIONS)
+    pairs = {s: {(k, i) for k in env.problem_ids(s) for i in env.instructions(k, s)} for s in env.splits}
+    assert env.splits == ("train", "test", "all", "test_problems", "test_instructions")
+    assert (len(pairs["test_problems"]), len(pairs["test_instructions"])) == (25, 106)
+    # An unseen kitchen with training recipes; an unseen recipe in a training kitchen.
+    assert all(k in HELD_OUT_PROBLEMS and i not in held for k, i in pairs["test_problems"])
+    assert all(k not in HELD_OUT_PROBLEMS and i in held for k, i in pairs["test_instructions"])
+    assert set(env.problem_ids("test_problems").tolist()) == set(HELD_OUT_PROBLEMS)
+    # "test" is the two parts and the pairs held out both ways, here (1, 5, 4) and (1, 4, 5) with (5, 4).
+    both = pairs["test"] - pairs["test_problems"] - pairs["test_instructions"]
+    assert both == {(175, (5, 4)), (217, (5, 4))}
+    assert pairs["test_problems"] | pairs["test_instructions"] <= pairs["test"]
+    assert not pairs["test_problems"] & pairs["test_instructions"]
+    # A made env samples only from its part (the oracle's exact mean there is 0.328).
+    env = make(split="test_problems")
+    env.reset(seed=1)
+    for _ in range(200):
+        _, info = env.reset()
+        obs = env.step(END_EPISODE)[0]
+        assert (info["problem_id"], tuple(obs["instruction"].tolist())) in pairs["test_problems"]
+
+
 @pytest.mark.parametrize("split", ["train", "test"])
 def test_sampling_respects_the_split(split):
     env = make(split=split)
@@ -485,7 +509,8 @@ def test_oracle_on_every_trial_and_split_means():
             assert returns[k, i] == pytest.approx(optimal_execution_return(k, i))
     assert set(np.round(list(returns.values()), 6)) == {0.2, 0.4, 0.6}
     # Split means (problem uniform, then recipe uniform), quoted in the report.
-    for split, expected in (("train", 0.3636), ("test", 0.3431)):
+    expected_means = {"train": 0.3636, "test": 0.3431, "test_problems": 0.3278, "test_instructions": 0.3434}
+    for split, expected in expected_means.items():
         means = [np.mean([returns[k, i] for i in env.instructions(k, split)]) for k in env.problem_ids(split)]
         assert np.mean(means) == pytest.approx(expected, abs=1e-4)
 

@@ -70,4 +70,10 @@ def test_bad_input():
 
     with pytest.raises(ValueError, match="split"):
         evaluate_meta(FirstActionModel(), gym.make("MetaBandit-v0", split="train"), split="test")
+    # A split of another family is named with this env's accepted values.
+    with pytest.raises(ValueError, match="split='test_problems' is not valid; accepted values: 'train', 'test', 'all'"):
+        evaluate_meta(FirstActionModel(), "MetaBandit-v0", split="test_problems")
+    with pytest.raises(ValueError, match="split='test_problems' is not valid"):
+        evaluate_meta(FirstActionModel(), gym.make("MetaBandit-v0"), split="test_problems")
+    assert evaluate_meta(FirstActionModel(), "MetaCook-v0", n_trials=2, split="test_problems").n_trials == 2
     assert isinstance(as_trial_agent(FirstActionModel()), PolicyAgent)

@@ -10,7 +10,16 @@ import numpy as np
 import pytest
 
 from sb3_dream import experiments
-from sb3_dream.experiments import EnvSpec, Run, RunConfig, load_curve, make_model, parse_kwargs, plan_runs
+from sb3_dream.experiments import (
+    EnvSpec,
+    Run,
+    RunConfig,
+    check_eval_splits,
+    load_curve,
+    make_model,
+    parse_kwargs,
+    plan_runs,
+)
 
 TINY_DREAM = [
     "exploration_learning_starts=5", "execution_learning_starts=5", "buffer_size=200", "execution_buffer_size=1000"
@@ -41,6 +50,11 @@ def test_bad_settings_are_rejected():
         RunConfig(steps=0)
     with pytest.raises(ValueError, match="eval_splits"):
         RunConfig(eval_splits=("valid",))
+    # MetaCook's own splits are accepted for MetaCook only.
+    cook_parts = RunConfig(eval_splits=("test_problems", "test_instructions"))
+    check_eval_splits(plan_runs(["dream"], [EnvSpec.parse("MetaCook-v0")], [0]), cook_parts)
+    with pytest.raises(ValueError, match=r"eval_splits=\['test_problems', 'test_instructions'\] is not valid for"):
+        check_eval_splits(plan_runs(["dream"], [EnvSpec.parse("MetaBus-v0:variant=map")], [0]), cook_parts)
     with pytest.raises(ValueError, match="bottleneck"):
         RunConfig(dream_kwargs=(("bottleneck", False),))
     with pytest.raises(ValueError, match="checkpoint_freq must be an integer >= 0"):

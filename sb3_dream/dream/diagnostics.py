@@ -32,7 +32,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from dream_envs.core import SPLITS, check_choice, check_positive_int
+from dream_envs.core import check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamTrialAgent
 from sb3_dream.evaluation import _make_env, evaluate_meta
 
@@ -137,7 +137,7 @@ def diagnose(
     if not isinstance(model, DREAM):
         raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
     n_trials = check_positive_int("n_trials", n_trials)
-    trial_env = _make_env(env, check_choice("split", split, SPLITS), 1, env_kwargs)
+    trial_env = _make_env(env, split, 1, env_kwargs)  # the env checks ``split``
     split_ids = np.asarray(trial_env.unwrapped.problem_ids(split))
     problem_ids = trial_problem_ids(split_ids, n_trials, seed, problem_ids)
 
