@@ -29,6 +29,8 @@ sync interval goes on to 1.2M with another, into its own ``--out``.
 
     <env>/<algo>_seed<k>.csv          learning curve on the held-out split (--eval-splits test)
     <env>/<algo>_seed<k>_train.csv    ... on the training split, with --eval-splits test train
+                                      (likewise _<split>.csv for any split the env offers, e.g.
+                                      MetaCook's test_problems and test_instructions)
     <env>/<algo>_seed<k>.json         the run's settings and final numbers (DREAM: also the final
                                       model's :func:`sb3_dream.dream.diagnose`)
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
