@@ -5,6 +5,7 @@ Importing this package registers ``MetaBus-v0``, ``MetaCook-v0``, ``SignNav3D-v0
 ``n_exec_episodes`` execution episodes (see :mod:`dream_envs.core`).
 """
 
+import functools
 import importlib
 from typing import Tuple
 
@@ -50,6 +51,7 @@ def env_splits(env_id: str) -> Tuple[str, ...]:
     return tuple(getattr(entry_point, "splits", SPLITS))
 
 
+@functools.lru_cache(maxsize=None)  # ENV_IDS is fixed: validators call this once per value checked
 def all_splits() -> Tuple[str, ...]:
     """Every split name that some env of this package offers ("train", "test", "all" first)."""
     return tuple(dict.fromkeys(split for env_id in ENV_IDS for split in env_splits(env_id)))

@@ -203,9 +203,10 @@ class RunConfig:
             raise ValueError(
                 f"preset={self.preset!r} is not valid; accepted values: {', '.join(map(repr, PRESET_NAMES))}"
             )
-        if not self.eval_splits or any(s not in all_splits() for s in self.eval_splits):
+        known = all_splits()
+        if not self.eval_splits or any(s not in known for s in self.eval_splits):
             raise ValueError(
-                f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, all_splits()))}"
+                f"eval_splits={self.eval_splits!r} is not valid; accepted values: {', '.join(map(repr, known))}"
             )
         for name in ("checkpoint_freq", "snapshot_freq"):
             freq = getattr(self, name)

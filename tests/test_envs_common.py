@@ -109,3 +109,15 @@ def test_paper_problem_representations():
     assert gym.make("MetaBus-v0", variant="map").unwrapped.problem_nvec.tolist() == [24]
     cook = gym.make("MetaCook-v0").unwrapped
     assert cook.problem_nvec.tolist() == [7, 7, 7] and cook.problem_features(1 + 7 * 2).tolist() == [1, 2, 0]
+
+
+def test_env_splits_are_read_from_the_class_without_making_the_env():
+    common = ("train", "test", "all")
+    assert dream_envs.env_splits("MetaBus-v0") == common
+    # The module:ID form, as in gym.make, and the family's own splits after the common ones.
+    assert dream_envs.env_splits("dream_envs:MetaCook-v0") == (*common, "test_problems", "test_instructions")
+    for env_id in dream_envs.ENV_IDS:
+        assert dream_envs.env_splits(env_id)[:3] == common
+    assert dream_envs.all_splits() == (*common, "test_problems", "test_instructions")
+    with pytest.raises(gym.error.Error):
+        dream_envs.env_splits("NoSuchEnv-v0")
