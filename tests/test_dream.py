@@ -334,6 +334,24 @@ def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_ep
         DREAM("MetaBandit-v0", policy_kwargs=dict(execution_time_input="yes"))
 
 
+def test_execution_instruction_mlp_off_makes_the_first_layer_additive_in_the_recipe_parts(tmp_path):
+    state, z = th.tensor([[1, 1, 3, 0, 0, 0]]), th.randn(1, 64)
+
+    def additive(q):  # the body's first pre-activation, before any ReLU mixes the parts
+        first = lambda recipe: q.body[0](th.cat([q.embed(state, th.tensor([recipe])), z], dim=-1))  # noqa: E731
+        # (3, 6) is a held-out recipe; (3, 1) and (7, 6) are training ones sharing a part with it.
+        return th.allclose(first([3, 6]), first([3, 1]) + first([7, 6]) - first([7, 1]), atol=1e-5)
+
+    model = DREAM("MetaCook-v0", seed=0, policy_kwargs=dict(execution_instruction_mlp=False))
+    assert additive(model.policy.execution_q)
+    assert not additive(DREAM("MetaCook-v0", seed=0).policy.execution_q)  # the paper's MLP mixes them
+    model.save(tmp_path / "parts.zip")
+    loaded = DREAM.load(tmp_path / "parts.zip")
+    assert loaded.policy.execution_instruction_mlp is False and additive(loaded.policy.execution_q)
+    with pytest.raises(ValueError, match="execution_instruction_mlp"):
+        DREAM("MetaBandit-v0", policy_kwargs=dict(execution_instruction_mlp=0))
+
+
 def test_exploration_time_input_is_an_option_fed_the_step_within_the_exploration_episode(tmp_path):
     starts = dict(exploration_learning_starts=5, execution_learning_starts=5)
     env = make_vec_env("MetaBus-v0", n_envs=2, seed=0)

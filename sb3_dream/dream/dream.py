@@ -152,7 +152,9 @@ class DREAM(TrialOffPolicyAlgorithm):
     :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
         Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also
         sees the step within its episode, so a greedy policy need not repeat itself on a second
-        visit to a state; default False, the paper's network), ``z_dim``.
+        visit to a state; default False, the paper's network), ``execution_instruction_mlp``
+        (default True, the paper's network; False lets the execution Q compose unseen recipes from
+        their parts, see :class:`~sb3_dream.dream.policies.ExecutionQNetwork`), ``z_dim``.
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}

@@ -86,6 +86,14 @@ class ExecutionQNetwork(nn.Module):
     ends the episode; with t it can act differently on its second visit, e.g. try another bus
     after riding back from a wrong one when z leaves two buses possible. It also makes the
     horizon-terminal TD targets Markov (the grid worlds' states hold no clock).
+
+    ``instruction_mlp=False`` (an option; the paper embeds the instruction like a state: 32 units
+    per dimension, then ReLU 256 -> 64) feeds the per-dimension embeddings, concatenated, to the
+    body. Its first layer is then a sum of one term per instruction dimension, so an unseen
+    combination of familiar parts (MetaCook's held-out recipes: A seen first, B seen second, never
+    together) gets a pre-activation made of trained terms, where the MLP maps it to an embedding
+    no training recipe had. With the optimal Q as a regression target this is what decides
+    whether unseen recipes are cooked (``examples/cook_composition_probe.py``).
     """
 
     TIME_EMBED_DIM = 16
@@ -97,6 +105,7 @@ class ExecutionQNetwork(nn.Module):
         z_dim: int = 64,
         hidden_sizes: Sequence[int] = (64,),
         time_steps: int = 0,
+        instruction_mlp: bool = True,
     ) -> None:
         super().__init__()
         positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
@@ -105,7 +114,9 @@ class ExecutionQNetwork(nn.Module):
                 f"execution_hidden_sizes must be a non-empty list or tuple of positive ints, got {hidden_sizes!r}"
             )
         self.state_embed = make_state_embedder(observation_space["obs"])
-        self.instruction_embed = MultiDiscreteEmbedder(observation_space["instruction"].nvec)
+        self.instruction_embed = MultiDiscreteEmbedder(
+            observation_space["instruction"].nvec, hidden_dims=(256, 64) if instruction_mlp else ()
+        )
         in_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
         self.time_steps = int(time_steps)
         self.time_embed: Optional[nn.Embedding] = None
@@ -197,8 +208,10 @@ class DreamPolicy(BasePolicy):
     (the paper's ``(64,)``), ``execution_time_input`` (default False, the paper's network): Q^exe
     also sees the step within the execution episode (see :class:`ExecutionQNetwork`), and
     ``exploration_time_input`` (default False): Q^exp also sees the step within the exploration
-    episode (see :class:`ExplorationQNetwork`). ``horizon`` (the inner-episode horizon) is set by
-    DREAM from the env.
+    episode (see :class:`ExplorationQNetwork`), ``execution_instruction_mlp`` (default True, the
+    paper's network): False gives Q^exe the instruction's per-dimension embeddings without the MLP
+    over them, for recipes never seen together (see :class:`ExecutionQNetwork`). ``horizon`` (the
+    inner-episode horizon) is set by DREAM from the env.
     """
 
     def __init__(
@@ -211,6 +224,7 @@ class DreamPolicy(BasePolicy):
         execution_hidden_sizes: Sequence[int] = (64,),
         execution_time_input: bool = False,
         exploration_time_input: bool = False,
+        execution_instruction_mlp: bool = True,
         horizon: Optional[int] = None,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
@@ -228,15 +242,19 @@ class DreamPolicy(BasePolicy):
         for name, flag in (
             ("execution_time_input", execution_time_input),
             ("exploration_time_input", exploration_time_input),
+            ("execution_instruction_mlp", execution_instruction_mlp),
         ):
             if not isinstance(flag, (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
-            if flag and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
+            if flag and name.endswith("time_input") and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
                 raise ValueError(f"{name} needs the inner-episode horizon >= 1, got horizon={horizon!r}")
         self.execution_time_input, self.horizon = bool(execution_time_input), horizon
         self.exploration_time_input = bool(exploration_time_input)
         time_steps = int(horizon) if execution_time_input else 0
-        self.execution_q = ExecutionQNetwork(observation_space, n_actions, z_dim, execution_hidden_sizes, time_steps)
+        self.execution_instruction_mlp = bool(execution_instruction_mlp)
+        self.execution_q = ExecutionQNetwork(
+            observation_space, n_actions, z_dim, execution_hidden_sizes, time_steps, self.execution_instruction_mlp
+        )
         self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)  # checked by the network
         time_steps = int(horizon) if exploration_time_input else 0
         self.exploration_q = ExplorationQNetwork(observation_space, n_actions, time_steps=time_steps)
@@ -273,6 +291,7 @@ class DreamPolicy(BasePolicy):
             execution_hidden_sizes=self.execution_hidden_sizes,
             execution_time_input=self.execution_time_input,
             exploration_time_input=self.exploration_time_input,
+            execution_instruction_mlp=self.execution_instruction_mlp,
             horizon=self.horizon,
             lr_schedule=self._dummy_schedule,
         )
