@@ -137,3 +137,30 @@ def test_custom_trial_env_is_a_working_imrl_problem():
     assert "problem_id" not in obs and info["problem_id"] == 2 and obs["obs"].tolist() == [0, 0]
     with pytest.raises(ValueError, match="length and n_codes"):
         module.SignCorridorEnv(length=1)
+
+
+def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_table(tmp_path):
+    probe = load_example("cook_composition_probe")
+    from dream_envs import cook
+
+    rng = np.random.default_rng(0)
+    for k in rng.choice(cook.N_PROBLEMS, 30, replace=False):
+        for recipe in cook.valid_instructions(int(k)):
+            states, q = probe.optimal_q(int(k), recipe)  # greedy on Q* cooks the recipe optimally
+            index, state, total = {s: j for j, s in enumerate(states)}, (*cook.START, 0, 0, 0), 0.0
+            for _ in range(probe.HORIZON):
+                action = probe.ACTIONS[int(q[index[state]].argmax())]
+                state, reward, done = cook.cook_transition(state, action, cook.fridge_contents(int(k)), recipe)
+                total += reward
+                if done:
+                    break
+            assert done and total == pytest.approx(cook.optimal_execution_return(int(k), recipe))
+    run_example(
+        "cook_composition_probe.py", "--variants", "wide_parts", "--seeds", "0", "--steps", "3", "--out", "probe.csv",
+        cwd=tmp_path,
+    )  # fmt: skip
+    rows = (tmp_path / "probe.csv").read_text().splitlines()
+    assert rows[0].startswith("variant,seed,steps,final_loss,part,pairs,greedy_return,optimal_return,cooked")
+    parts = [row.split(",")[4] for row in rows[1:]]
+    assert parts == ["train", "test_problems", "test_instructions", "recipe 36", "recipe 71", "recipe 54"]
+    assert [int(row.split(",")[5]) for row in rows[1:]] == [2268, 25, 106, 36, 36, 34]
