@@ -88,11 +88,17 @@ def optimal_q(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np
     return states, q
 
 
+def observation(state: tuple) -> List[int]:
+    """MetaCook's inner observation of ``(x, y, held, pot1, pot2)``."""
+    x, y, held, pot1, pot2 = state
+    return [x, y, cook.object_at(x, y), held, pot1, pot2]
+
+
 def dataset(pairs: Sequence[Pair]) -> Dict[str, th.Tensor]:
     obs, recipes, problems, targets = [], [], [], []
     for k, recipe in pairs:
         states, q = optimal_q(k, recipe)
-        obs += [[x, y, cook.object_at(x, y), held, p1, p2] for x, y, held, p1, p2 in states]
+        obs += [observation(s) for s in states]
         recipes += [recipe] * len(states)
         problems += [np.array(cook.fridge_contents(k)) - 1] * len(states)
         targets.append(q)
@@ -113,7 +119,7 @@ def greedy_returns(q_net: ExecutionQNetwork, encoder: ProblemEncoder, pairs: Seq
     states = [(*cook.START, 0, 0, 0)] * len(pairs)
     returns, done = np.zeros(len(pairs)), np.zeros(len(pairs), dtype=bool)
     for _ in range(HORIZON):
-        obs = th.as_tensor(np.array([[x, y, cook.object_at(x, y), h, p1, p2] for x, y, h, p1, p2 in states]))
+        obs = th.as_tensor(np.array([observation(s) for s in states]))
         actions = q_net(obs, recipes, z)[:, ACTIONS].argmax(dim=1).tolist()
         for j, (k, recipe) in enumerate(pairs):
             if not done[j]:

@@ -92,8 +92,9 @@ class ExecutionQNetwork(nn.Module):
     body. Its first layer is then a sum of one term per instruction dimension, so an unseen
     combination of familiar parts (MetaCook's held-out recipes: A seen first, B seen second, never
     together) gets a pre-activation made of trained terms, where the MLP maps it to an embedding
-    no training recipe had. With the optimal Q as a regression target this is what decides
-    whether unseen recipes are cooked (``examples/cook_composition_probe.py``).
+    no training recipe had. Regressed onto the optimal Q, the (128, 128) network then cooked the
+    held-out recipes in 87% of their kitchens against 36% with the MLP (10 seeds each,
+    ``examples/cook_composition_probe.py``); trained by DREAM it did not (see the README).
     """
 
     TIME_EMBED_DIM = 16
@@ -114,9 +115,12 @@ class ExecutionQNetwork(nn.Module):
                 f"execution_hidden_sizes must be a non-empty list or tuple of positive ints, got {hidden_sizes!r}"
             )
         self.state_embed = make_state_embedder(observation_space["obs"])
-        self.instruction_embed = MultiDiscreteEmbedder(
-            observation_space["instruction"].nvec, hidden_dims=(256, 64) if instruction_mlp else ()
-        )
+        instruction_nvec = observation_space["instruction"].nvec
+        # the paper's MLP is the embedder's default; without it, the per-dimension tables alone
+        if instruction_mlp:
+            self.instruction_embed = MultiDiscreteEmbedder(instruction_nvec)
+        else:
+            self.instruction_embed = MultiDiscreteEmbedder(instruction_nvec, hidden_dims=())
         in_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
         self.time_steps = int(time_steps)
         self.time_embed: Optional[nn.Embedding] = None
@@ -239,14 +243,12 @@ class DreamPolicy(BasePolicy):
         n_actions = int(action_space.n)
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
-        for name, flag in (
-            ("execution_time_input", execution_time_input),
-            ("exploration_time_input", exploration_time_input),
-            ("execution_instruction_mlp", execution_instruction_mlp),
-        ):
+        time_inputs = {"execution_time_input": execution_time_input, "exploration_time_input": exploration_time_input}
+        for name, flag in {**time_inputs, "execution_instruction_mlp": execution_instruction_mlp}.items():
             if not isinstance(flag, (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
-            if flag and name.endswith("time_input") and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
+        for name, flag in time_inputs.items():  # the clock's embedding has one row per step
+            if flag and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
                 raise ValueError(f"{name} needs the inner-episode horizon >= 1, got horizon={horizon!r}")
         self.execution_time_input, self.horizon = bool(execution_time_input), horizon
         self.exploration_time_input = bool(exploration_time_input)
