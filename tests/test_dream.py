@@ -10,7 +10,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_dream import DREAM
-from sb3_dream.dream.policies import TrajectoryDecoder
+from sb3_dream.dream.policies import DreamPolicy, TrajectoryDecoder
 from sb3_dream.evaluation import evaluate_meta
 
 FAST = dict(
@@ -332,6 +332,11 @@ def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_ep
     assert DREAM("MetaBandit-v0").policy.execution_q.time_embed is None  # the paper's network
     with pytest.raises(ValueError, match="execution_time_input"):
         DREAM("MetaBandit-v0", policy_kwargs=dict(execution_time_input="yes"))
+    env = gym.make("MetaBus-v0").unwrapped  # built by hand, the policy has no horizon for the clock
+    with pytest.raises(ValueError, match="execution_time_input needs the inner-episode horizon"):
+        DreamPolicy(
+            env.observation_space, env.action_space, lambda _: 1e-4, env.problem_nvec, execution_time_input=True
+        )
 
 
 def test_execution_instruction_mlp_off_makes_the_first_layer_additive_in_the_recipe_parts(tmp_path):
