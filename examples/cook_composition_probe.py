@@ -17,12 +17,21 @@ Architectures compared (``--variants``): ``paper`` (body (64,), the instruction 
 paper's MLP), ``wide`` (body (128, 128), the runs' setting), and each with ``_parts``
 (``execution_instruction_mlp=False``: the per-dimension embeddings of the recipe enter the body
 directly). Each (variant, seed) takes about 2.5 minutes on one core.
+
+Closer to what DQN does: ``--targets bootstrapped`` regresses onto r + gamma max_a' Q(s', a') of
+the network itself, recomputed every ``--target-update`` steps (a target network's hard sync),
+instead of Q*; ``--actions one`` teaches one uniformly drawn action per sampled state (a replay
+transition) instead of all; ``--lr`` and ``--batch-size`` set Adam's step and the batch (DREAM's
+are 1e-4 and 32). What then still differs from a DREAM run: the data (every state of every
+training pair here, the states the agent visits there), z (exact here; f(T) with noise or the
+decoder's g there) and the time input.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import os
 import time
 from typing import Dict, List, Sequence, Tuple
 
@@ -56,9 +65,10 @@ def split_pairs(env: cook.MetaCookEnv, split: str) -> List[Pair]:
     return [(k, tuple(i)) for k in range(cook.N_PROBLEMS) for i in env.instructions(k, split)]
 
 
-def optimal_q(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np.ndarray]:
-    """Q* over the states of an unfinished, unruined dish: pot empty or holding A, any position and
-    anything in hand from this kitchen."""
+def kitchen_mdp(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np.ndarray, np.ndarray, np.ndarray]:
+    """The states of an unfinished, unruined dish (pot empty or holding A, any position and anything
+    in hand from this kitchen) and, per state and action in :data:`ACTIONS`: the next state's index,
+    the reward, and the value after a step that ends or ruins the dish (NaN where the dish goes on)."""
     contents = cook.fridge_contents(problem_id)
     a = recipe[0]
     states = [
@@ -71,7 +81,7 @@ def optimal_q(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np
     index = {s: j for j, s in enumerate(states)}
     next_index = np.zeros((len(states), len(ACTIONS)), dtype=np.int64)
     reward = np.zeros((len(states), len(ACTIONS)))
-    fixed = np.full((len(states), len(ACTIONS)), np.nan)  # the value after a step that ends or ruins the dish
+    fixed = np.full((len(states), len(ACTIONS)), np.nan)
     for j, s in enumerate(states):
         for n, action in enumerate(ACTIONS):
             s2, reward[j, n], done = cook.cook_transition(s, action, contents, recipe)
@@ -81,11 +91,27 @@ def optimal_q(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np
                 fixed[j, n] = RUINED_VALUE
             else:
                 next_index[j, n] = index[s2]
-    value = np.zeros(len(states))
+    return states, next_index, reward, fixed
+
+
+def bellman_targets(value: np.ndarray, next_index: np.ndarray, reward: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """r + gamma * V(s'), with the fixed value where the step ends or ruins the dish."""
+    return reward + GAMMA * np.where(np.isnan(fixed), value[next_index], fixed)
+
+
+def value_iteration(next_index: np.ndarray, reward: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """Q* of a :func:`kitchen_mdp`."""
+    value = np.zeros(len(next_index))
     for _ in range(200):  # gamma^200 < 0.14 of a reward's size; the rankings settle long before
-        q = reward + GAMMA * np.where(np.isnan(fixed), value[next_index], fixed)
+        q = bellman_targets(value, next_index, reward, fixed)
         value = q.max(axis=1)
-    return states, q
+    return q
+
+
+def optimal_q(problem_id: int, recipe: Tuple[int, int]) -> Tuple[List[tuple], np.ndarray]:
+    """The states of :func:`kitchen_mdp` and their Q*."""
+    states, *transitions = kitchen_mdp(problem_id, recipe)
+    return states, value_iteration(*transitions)
 
 
 def observation(state: tuple) -> List[int]:
@@ -95,19 +121,24 @@ def observation(state: tuple) -> List[int]:
 
 
 def dataset(pairs: Sequence[Pair]) -> Dict[str, th.Tensor]:
-    obs, recipes, problems, targets = [], [], [], []
+    """Every state of every pair's :func:`kitchen_mdp`, its Q* and its transitions (next-state rows
+    index the whole dataset)."""
+    columns: Dict[str, list] = {key: [] for key in ("obs", "recipes", "problems", "targets", "next", "reward", "fixed")}
+    offset = 0
     for k, recipe in pairs:
-        states, q = optimal_q(k, recipe)
-        obs += [observation(s) for s in states]
-        recipes += [recipe] * len(states)
-        problems += [np.array(cook.fridge_contents(k)) - 1] * len(states)
-        targets.append(q)
-    return dict(
-        obs=th.as_tensor(np.array(obs)),
-        recipes=th.as_tensor(np.array(recipes)),
-        problems=th.as_tensor(np.array(problems)),
-        targets=th.as_tensor(np.concatenate(targets), dtype=th.float32),
-    )
+        states, next_index, reward, fixed = kitchen_mdp(k, recipe)
+        columns["obs"] += [observation(s) for s in states]
+        columns["recipes"] += [recipe] * len(states)
+        columns["problems"] += [np.array(cook.fridge_contents(k)) - 1] * len(states)
+        columns["targets"].append(value_iteration(next_index, reward, fixed))
+        columns["next"].append(next_index + offset)
+        columns["reward"].append(reward)
+        columns["fixed"].append(fixed)
+        offset += len(states)
+    data = {key: th.as_tensor(np.array(columns[key])) for key in ("obs", "recipes", "problems")}
+    data.update({key: np.concatenate(columns[key]) for key in ("next", "reward", "fixed")})
+    data["targets"] = th.as_tensor(np.concatenate(columns["targets"]), dtype=th.float32)
+    return data
 
 
 @th.no_grad()
@@ -128,21 +159,40 @@ def greedy_returns(q_net: ExecutionQNetwork, encoder: ProblemEncoder, pairs: Seq
     return returns
 
 
-def probe(variant: str, seed: int, steps: int, batch_size: int, data, env, pairs) -> List[dict]:
+@th.no_grad()
+def bootstrapped_targets(q_net: ExecutionQNetwork, encoder: ProblemEncoder, data) -> th.Tensor:
+    """r + gamma * max_a' Q(s', a') under the networks as they are now: a DQN target network's
+    targets, for every state and action of the dataset at once."""
+    value = th.cat([
+        q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS].max(dim=1).values
+        for rows in th.arange(len(data["obs"])).split(65536)
+    ])
+    return th.as_tensor(bellman_targets(value.numpy(), data["next"], data["reward"], data["fixed"]), dtype=th.float32)
+
+
+def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -> List[dict]:
     th.manual_seed(seed)
     q_net = ExecutionQNetwork(env.observation_space, cook.N_ACTIONS, 64, **VARIANTS[variant])
     encoder = ProblemEncoder(env.problem_nvec, 64)
-    optimizer = th.optim.Adam([*q_net.parameters(), *encoder.parameters()], lr=1e-3)
+    optimizer = th.optim.Adam([*q_net.parameters(), *encoder.parameters()], lr=args.lr)
     generator = th.Generator().manual_seed(seed)
+    targets = data["targets"]
     start = time.perf_counter()
-    for _ in range(steps):
-        rows = th.randint(len(data["obs"]), (batch_size,), generator=generator)
+    for step in range(args.steps):
+        if args.targets == "bootstrapped" and step % args.target_update == 0:
+            targets = bootstrapped_targets(q_net, encoder, data)
+        rows = th.randint(len(data["obs"]), (args.batch_size,), generator=generator)
         q = q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS]
-        loss = ((q - data["targets"][rows]) ** 2).mean()
+        error = (q - targets[rows]) ** 2
+        if args.actions == "one":  # a replay transition teaches one action's value per state
+            error = error.gather(1, th.randint(len(ACTIONS), (len(rows), 1), generator=generator))
+        loss = error.mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     seconds = time.perf_counter() - start
+    setting = dict(variant=variant, targets=args.targets, actions=args.actions, lr=args.lr,
+                   batch_size=args.batch_size, seed=seed, steps=args.steps, final_loss=f"{loss.item():.6f}")
     results = []
     for split in SPLITS:
         got = greedy_returns(q_net, encoder, pairs[split])
@@ -154,8 +204,7 @@ def probe(variant: str, seed: int, steps: int, batch_size: int, data, env, pairs
                 groups[f"recipe {a}{b}"] = np.array([r == (a, b) for r in recipes])
         for name, rows in groups.items():
             results.append(
-                dict(variant=variant, seed=seed, steps=steps, final_loss=f"{loss.item():.6f}", part=name,
-                     pairs=int(rows.sum()), greedy_return=f"{got[rows].mean():.3f}",
+                dict(**setting, part=name, pairs=int(rows.sum()), greedy_return=f"{got[rows].mean():.3f}",
                      optimal_return=f"{best[rows].mean():.3f}",
                      cooked=f"{np.mean(got[rows] >= best[rows] - 1e-6):.3f}", train_seconds=f"{seconds:.0f}")
             )
@@ -166,9 +215,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--steps", type=int, default=20000, help="gradient steps (Adam, lr 1e-3)")
+    parser.add_argument("--steps", type=int, default=20000, help="gradient steps")
     parser.add_argument("--batch-size", type=int, default=512)
-    parser.add_argument("--out", default=None, help="CSV to write (one row per variant, seed and part)")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    parser.add_argument(
+        "--targets", default="optimal", choices=("optimal", "bootstrapped"),
+        help="regress onto Q* (optimal) or onto r + gamma max Q(s') of the network itself, recomputed "
+        "every --target-update steps (bootstrapped, as DQN with a target network)",
+    )
+    parser.add_argument(
+        "--actions", default="all", choices=("all", "one"),
+        help="regress every action's value per sampled state, or one uniformly drawn action's (as DQN's replay)",
+    )
+    parser.add_argument("--target-update", type=int, default=500, help="steps between bootstrapped targets")
+    parser.add_argument("--out", default=None, help="CSV to append to (one row per variant, seed and part)")
     args = parser.parse_args()
     th.set_num_threads(1)
     env = gym.make("MetaCook-v0").unwrapped
@@ -177,13 +237,21 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         for seed in args.seeds:
-            for row in probe(variant, seed, args.steps, args.batch_size, data, env, pairs):
+            for row in probe(variant, seed, args, data, env, pairs):
                 rows.append(row)
                 print(" ".join(f"{k}={v}" for k, v in row.items()), flush=True)
-    if args.out:
-        with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
+    if args.out:  # appended to a table of the same columns, so several commands' rows gather in one file
+        fields = list(rows[0])
+        exists = os.path.exists(args.out) and os.path.getsize(args.out) > 0
+        if exists:
+            with open(args.out, newline="") as f:
+                header = next(csv.reader(f))
+            if header != fields:
+                raise SystemExit(f"--out {args.out} has the columns {header}, not this script's {fields}")
+        with open(args.out, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            if not exists:
+                writer.writeheader()
             writer.writerows(rows)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import pathlib
 import shutil
@@ -155,12 +156,19 @@ def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_ta
                 if done:
                     break
             assert done and total == pytest.approx(cook.optimal_execution_return(int(k), recipe))
-    run_example(
-        "cook_composition_probe.py", "--variants", "wide_parts", "--seeds", "0", "--steps", "3", "--out", "probe.csv",
-        cwd=tmp_path,
-    )  # fmt: skip
-    rows = (tmp_path / "probe.csv").read_text().splitlines()
-    assert rows[0].startswith("variant,seed,steps,final_loss,part,pairs,greedy_return,optimal_return,cooked")
-    parts = [row.split(",")[4] for row in rows[1:]]
-    assert parts == ["train", "test_problems", "test_instructions", "recipe 36", "recipe 71", "recipe 54"]
-    assert [int(row.split(",")[5]) for row in rows[1:]] == [2268, 25, 106, 36, 36, 34]
+            # Q* is the fixed point of the bootstrapped targets: r + gamma max_a' Q*(s', a') = Q*
+            _, *transitions = probe.kitchen_mdp(int(k), recipe)
+            np.testing.assert_allclose(probe.bellman_targets(q.max(axis=1), *transitions), q, atol=1e-6)
+    for flags in ([], ["--targets", "bootstrapped", "--actions", "one", "--target-update", "2"]):
+        run_example(
+            "cook_composition_probe.py", "--variants", "wide_parts", "--seeds", "0", "--steps", "3",
+            "--out", "probe.csv", *flags, cwd=tmp_path,
+        )  # fmt: skip
+    with open(tmp_path / "probe.csv") as f:
+        rows = list(csv.DictReader(f))  # the second command's rows appended to the first's
+    assert [row["part"] for row in rows] == 2 * [
+        "train", "test_problems", "test_instructions", "recipe 36", "recipe 71", "recipe 54"
+    ]  # fmt: skip
+    assert [int(row["pairs"]) for row in rows] == 2 * [2268, 25, 106, 36, 36, 34]
+    assert [row["targets"] for row in rows] == 6 * ["optimal"] + 6 * ["bootstrapped"]
+    assert all(0 <= float(row["cooked"]) <= 1 for row in rows)
