@@ -159,14 +159,17 @@ def greedy_returns(q_net: ExecutionQNetwork, encoder: ProblemEncoder, pairs: Seq
     return returns
 
 
+def dataset_q(q_net: ExecutionQNetwork, encoder: ProblemEncoder, data, rows: th.Tensor) -> th.Tensor:
+    """Q(s, i, f(T), a) of the dataset's ``rows``, for the actions in :data:`ACTIONS`."""
+    return q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS]
+
+
 @th.no_grad()
 def bootstrapped_targets(q_net: ExecutionQNetwork, encoder: ProblemEncoder, data) -> th.Tensor:
     """r + gamma * max_a' Q(s', a') under the networks as they are now: a DQN target network's
     targets, for every state and action of the dataset at once."""
-    value = th.cat([
-        q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS].max(dim=1).values
-        for rows in th.arange(len(data["obs"])).split(65536)
-    ])
+    rows = th.arange(len(data["obs"]))
+    value = th.cat([dataset_q(q_net, encoder, data, chunk).max(dim=1).values for chunk in rows.split(65536)])
     return th.as_tensor(bellman_targets(value.numpy(), data["next"], data["reward"], data["fixed"]), dtype=th.float32)
 
 
@@ -182,8 +185,7 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
         if args.targets == "bootstrapped" and step % args.target_update == 0:
             targets = bootstrapped_targets(q_net, encoder, data)
         rows = th.randint(len(data["obs"]), (args.batch_size,), generator=generator)
-        q = q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS]
-        error = (q - targets[rows]) ** 2
+        error = (dataset_q(q_net, encoder, data, rows) - targets[rows]) ** 2
         if args.actions == "one":  # a replay transition teaches one action's value per state
             error = error.gather(1, th.randint(len(ACTIONS), (len(rows), 1), generator=generator))
         loss = error.mean()
