@@ -232,6 +232,11 @@ def main() -> None:
     parser.add_argument("--target-update", type=int, default=500, help="steps between bootstrapped targets")
     parser.add_argument("--out", default=None, help="CSV to append to (one row per variant, seed and part)")
     args = parser.parse_args()
+    for option in ("steps", "batch_size", "target_update"):
+        if getattr(args, option) < 1:
+            parser.error(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
+    if not args.lr > 0:
+        parser.error(f"--lr must be positive, got {args.lr}")
     th.set_num_threads(1)
     env = gym.make("MetaCook-v0").unwrapped
     pairs = {split: split_pairs(env, split) for split in SPLITS}

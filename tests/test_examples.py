@@ -172,3 +172,9 @@ def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_ta
     assert [int(row["pairs"]) for row in rows] == 2 * [2268, 25, 106, 36, 36, 34]
     assert [row["targets"] for row in rows] == 6 * ["optimal"] + 6 * ["bootstrapped"]
     assert all(0 <= float(row["cooked"]) <= 1 for row in rows)
+    for flag, value in (("--target-update", "0"), ("--steps", "-1"), ("--lr", "0")):  # refused before any work
+        result = subprocess.run(
+            [sys.executable, str(EXAMPLES / "cook_composition_probe.py"), flag, value],
+            cwd=tmp_path, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert result.returncode == 2 and f"{flag} must be positive, got {value}" in result.stderr
