@@ -23,7 +23,9 @@ own from the kept final checkpoint of the same run (algorithm, env, seed) under 
 command's preset and overrides applied to the loaded model (SB3's ``load(**kwargs)``; the networks,
 ``policy_kwargs`` included, must stay the same). Its learning curve and wall-clock carry over, so
 the new run's curve starts where the parent's ended: e.g. a run made to 1M steps with one target
-sync interval goes on to 1.2M with another, into its own ``--out``.
+sync interval goes on to 1.2M with another, into its own ``--out``. The run's JSON records the
+parent (``init_from``: its ``--out`` and env steps), also once the run is resumed or extended from
+its own checkpoints.
 
 **Outputs** under ``--out``::
 
@@ -393,6 +395,9 @@ class Checkpointer:
     def __init__(self, run: Run, config: RunConfig, out: pathlib.Path) -> None:
         self.run, self.config, self.path = run, config, run.checkpoint_path(out)
         self.folder = self.path.parent
+        # Where the run began with --init-from ({"out", "env_steps"}), kept in every checkpoint so
+        # that a run resumed or extended from its own checkpoint still records its parent.
+        self.init_from: Optional[Dict[str, Any]] = None
 
     def _record(self) -> Optional[Dict[str, Any]]:
         """The last checkpoint's JSON as written (whatever its settings), or None."""
@@ -433,6 +438,7 @@ class Checkpointer:
             "train_seconds": train_seconds,
             "curves": curves,
             "settings": self.config.settings(self.run.algo),
+            "init_from": self.init_from,
         }
         best_file = None if best is None else pathlib.Path(best.best_model_save_path) / "best_model.zip"
         if best_file is not None and best_file.exists() and best.best_env_steps is not None:
@@ -513,10 +519,11 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             path.unlink(missing_ok=True)  # an interrupted run starts over
 
     tag = f"{run.algo} {run.env.label} seed {run.seed}"
-    init_from, resume_folder = None, checkpointer.folder
+    init_from, resume_folder = None, checkpointer.folder  # init_from: starting from the parent now
     if resume is None and config.init_from:
         resume_folder, resume = init_checkpoint(run, config)
         init_from = {"out": config.init_from, "env_steps": int(resume["env_steps"])}
+    checkpointer.init_from = init_from if init_from is not None else (resume or {}).get("init_from")
     env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
     if resume is None:
         model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
@@ -587,7 +594,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         "settings": config.settings(run.algo),
         "train_seconds": seconds,
         "resumed_from": None if resume is None or init_from is not None else resume["env_steps"],
-        "init_from": init_from,
+        "init_from": checkpointer.init_from,
         "final": finals,
     }
     if best is not None and best.best_env_steps is not None:

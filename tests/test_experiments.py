@@ -286,6 +286,11 @@ def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_
     assert model.num_timesteps == 300 and model.target_update_interval == 7 and model.reward_penalty == 0.1
     # The parent is left as it was.
     assert load_curve(run.curve_path(parent_out))["env_steps"].tolist() == [0, 100, 200]
+    # Extended from its own checkpoint, the run still records where it began.
+    (record,) = experiments.run_experiments([run], dataclasses.replace(child, steps=400), out, jobs=1)
+    assert record["status"] == "done"
+    info = json.loads(run.info_path(out).read_text())
+    assert info["init_from"] == {"out": str(parent_out), "env_steps": 200} and info["resumed_from"] == 300
 
     # What cannot go on: other networks, other evaluation settings, no parent checkpoint.
     wide = tuple(sorted({**dict(kwargs), "policy_kwargs": {"execution_hidden_sizes": (32,)}}.items()))
