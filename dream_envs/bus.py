@@ -17,6 +17,7 @@ Cell = Tuple[int, int]
 # Grid actions shared by the grid families (bus, cooking).
 LEFT, UP, RIGHT, DOWN, NOOP, RIDE, END_EPISODE, PICKUP, DROP = range(9)
 N_ACTIONS = 9
+ACTION_NAMES = ("left", "up", "right", "down", "noop", "ride", "end", "pickup", "drop")
 MOVES: Dict[int, Cell] = {LEFT: (-1, 0), UP: (0, 1), RIGHT: (1, 0), DOWN: (0, -1)}
 # Object under the agent (third ``obs`` dimension), shared by the grid families.
 NO_OBJECT, BUS, MAP, POT, FRIDGE = range(5)
@@ -89,6 +90,8 @@ class MetaBusEnv(TrialEnv):
     :param variant: "distracting", "map" or "vanilla".
     :param horizon: the inner-episode horizon (default 20, the paper's).
     """
+
+    action_names = ACTION_NAMES
 
     def __init__(
         self,

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
+from dream_envs.bus import ACTION_NAMES as GRID_ACTION_NAMES
 from dream_envs.core import (
     EXPLORATION,
     SPLITS,
@@ -289,6 +290,7 @@ class MetaCookEnv(TrialEnv):
     """
 
     splits = COOK_SPLITS
+    action_names = GRID_ACTION_NAMES
 
     def __init__(
         self,

@@ -94,6 +94,8 @@ class TrialEnv(gym.Env, ABC):
     metadata: Dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 4}
     splits: Tuple[str, ...] = SPLITS
     """The splits this family offers: always "train", "test" and "all", then any of its own."""
+    action_names: Optional[Tuple[str, ...]] = None
+    """A short name per action, for reports (e.g. ``examples/meta_test.py --trace``); None: numbers."""
 
     def __init__(
         self,
@@ -393,14 +395,18 @@ def play_trial(
     """Run one trial of ``agent`` in ``env``; the agent only ever sees :func:`public_info`.
 
     Returns a dict with ``problem_id``, ``execution_returns`` (one per execution episode),
-    ``exploration_length`` and ``trial_return`` (the sum of the step rewards).
+    ``exploration_length``, ``exploration_actions`` (the actions of the exploration episode) and
+    ``trial_return`` (the sum of the step rewards).
     """
     agent.reset()
     obs, info = env.reset(seed=seed, options=options)
-    result: Dict[str, Any] = {"problem_id": info["problem_id"], "trial_return": 0.0}
+    result: Dict[str, Any] = {"problem_id": info["problem_id"], "trial_return": 0.0, "exploration_actions": []}
     terminated = truncated = False
     while not (terminated or truncated):
-        obs, reward, terminated, truncated, info = env.step(agent.act(obs, public_info(info)))
+        action = agent.act(obs, public_info(info))
+        if int(obs["phase"]) == EXPLORATION:
+            result["exploration_actions"].append(int(action))
+        obs, reward, terminated, truncated, info = env.step(action)
         result["trial_return"] += float(reward)
         if info.get("episode_end") and info["episode_phase"] == EXPLORATION:
             result["exploration_length"] = info["episode_length"]

@@ -299,6 +299,7 @@ class SignNav3DEnv(TrialEnv):
     """
 
     metadata: Dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 4}
+    action_names = ("left", "right", "forward", "end")
 
     def __init__(
         self,

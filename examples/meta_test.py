@@ -7,6 +7,7 @@
     python examples/meta_test.py --model dream_metabus.zip --exploration
     python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --split train --exploration
     python examples/meta_test.py --model snapshots/dream_seed0_*_steps.zip --exploration  # one line each
+    python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --split train --trace 3
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
@@ -27,6 +28,10 @@ colored and gray routes ridden while exploring, whether it read the map
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
 stage (:func:`dream_envs.cook.behaviour_report`).
 
+``--trace K`` prints the actions of the first K trials' exploration episodes, by name where the
+env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
+repeating a no-op from the start, which every trial begins the same way.
+
 The model's algorithm (DREAM or RL2DQN) is read from the saved file. Several ``--model`` files
 (e.g. the runner's ``--snapshot-freq`` snapshots of one run) are meta-tested on the same trials,
 in the order given, with the optimal and the random agent once.
@@ -42,8 +47,8 @@ from typing import Any
 import gymnasium as gym
 
 import dream_envs
-from dream_envs import RandomAgent
-from sb3_dream.evaluation import evaluate_meta
+from dream_envs import RandomAgent, play_trials
+from sb3_dream.evaluation import as_trial_agent, evaluate_meta
 from sb3_dream.experiments import parse_kwargs
 
 
@@ -81,7 +86,10 @@ def main() -> None:
     parser.add_argument(
         "--exploration", action="store_true", help="MetaBus-v0 and MetaCook-v0: what each agent explores and does"
     )
+    parser.add_argument("--trace", type=int, default=0, metavar="K", help="print the first K explorations' actions")
     args = parser.parse_args()
+    if args.trace < 0:
+        parser.error(f"--trace must be a number of trials >= 0, got {args.trace}")
 
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, **env_kwargs)
@@ -107,10 +115,15 @@ def main() -> None:
             problem_ids=problem_ids,
         )
         print(f"  {name:>20}: {result.summary()}")
+    if args.trace:
+        action_names = env.unwrapped.action_names
+        for name, agent in agents.items():
+            for k, trial in enumerate(play_trials(env, as_trial_agent(agent), args.trace, args.seed, problem_ids)):
+                actions = [str(a) if action_names is None else action_names[a] for a in trial["exploration_actions"]]
+                print(f"  {name:>20} trial {k}, problem {trial['problem_id']}: {' '.join(actions)}")
     if args.exploration:
         from dream_envs.bus import exploration_report
         from dream_envs.cook import behaviour_report
-        from sb3_dream.evaluation import as_trial_agent
 
         reports = {"MetaBus-v0": exploration_report, "MetaCook-v0": behaviour_report}
         if args.env not in reports:

@@ -496,6 +496,11 @@ def test_oracle_is_optimal_against_brute_force(contents, instruction):
     result = play_trial(env, env.oracle(), seed=0, options={"problem_id": k, "instruction": list(instruction)})
     assert result["execution_returns"] == pytest.approx([optimum, optimum])
     assert result["exploration_length"] == 8  # three fridges opened in 7 steps, then end-episode
+    # The trial records its exploration's actions (none of the execution's), which the env names.
+    exploration = [RIGHT, PICKUP, DOWN, PICKUP, UP, UP, PICKUP, END_EPISODE]
+    assert result["exploration_actions"] == exploration
+    names = [env.unwrapped.action_names[a] for a in exploration]
+    assert names == ["right", "pickup", "down", "pickup", "up", "up", "pickup", "end"]
 
 
 def test_oracle_on_every_trial_and_split_means():

@@ -90,7 +90,10 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert "split=test (24 problems), 4 trials" in out
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
     diagnose_args = ["--model", str(model), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
-    out = run_example("meta_test.py", *diagnose_args, "--exploration", cwd=tmp_path)
+    out = run_example("meta_test.py", *diagnose_args, "--exploration", "--trace", "2", cwd=tmp_path)
+    # --trace: each agent's first two explorations, by action name; the oracle reads the map.
+    assert out.count("optimal (scripted) trial ") == 2 and out.count("DREAM trial ") == 2
+    assert "optimal (scripted) trial 0, problem " in out and ": right right right down end\n" in out
     assert "diagnosis: return with z = g " in out and "with z = f(T) " in out and "with z ~ N(f(T), rho^2 I) " in out
     # The oracle reads the map in every trial and ends the exploration episode after 5 steps.
     assert "optimal (scripted) exploring: colored routes seen 0.00" in out
