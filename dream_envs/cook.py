@@ -17,7 +17,10 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
+# The grid actions and the object codes are MetaBus's (the ride-bus action does nothing in a kitchen).
 from dream_envs.bus import ACTION_NAMES as GRID_ACTION_NAMES
+from dream_envs.bus import DOWN, DROP, END_EPISODE, FRIDGE, LEFT, MOVES, N_ACTIONS, NO_OBJECT, PICKUP, POT, RIGHT, UP
+from dream_envs.bus import NOOP, RIDE as RIDE_BUS  # noqa: F401 (unused here: this module's names for all 9 actions)
 from dream_envs.core import (
     EXPLORATION,
     SPLITS,
@@ -28,13 +31,6 @@ from dream_envs.core import (
     play_trials,
 )
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
-
-# Grid actions, shared by the grid envs (the ride-bus action does nothing in a kitchen).
-LEFT, UP, RIGHT, DOWN, NOOP, RIDE_BUS, END_EPISODE, PICKUP, DROP = range(9)
-N_ACTIONS = 9
-MOVES = {LEFT: (-1, 0), UP: (0, 1), RIGHT: (1, 0), DOWN: (0, -1)}
-# Object under the agent, same coding as the other grid envs.
-NO_OBJECT, BUS, MAP, POT, FRIDGE = range(5)
 
 GRID_SIZE = 3
 N_INGREDIENTS = 7
