@@ -561,8 +561,23 @@ class CookReport:
             "none": int((pick == 0).sum()),
         }
 
+    def by_recipe(self, recipes: Sequence[Tuple[int, int]] = HELD_OUT_INSTRUCTIONS) -> Dict[Tuple[int, int], str]:
+        """Per recipe among ``recipes`` that the episodes met (default: the held-out ones): the
+        share of its episodes finished and, in brackets, finished optimally, e.g. ``"61% (28%)"``."""
+        optimal = np.isclose(self.execution_returns, self.optimal_returns)
+        shares = {}
+        for recipe in recipes:
+            mine = (self.instructions == np.asarray(recipe)).all(axis=1)
+            if mine.any():
+                shares[tuple(recipe)] = f"{self.finished[mine].mean():.0%} ({optimal[mine].mean():.0%})"
+        return shares
+
     def summary(self) -> str:
         counts = np.bincount(self.fridges_opened, minlength=N_FRIDGES + 1)
+        held_out = self.by_recipe()
+        per_recipe = "" if not held_out else "; held-out recipes finished (optimally): " + ", ".join(
+            f"{recipe} {share}" for recipe, share in held_out.items()
+        )
         return (
             f"fridges opened while exploring {self.fridges_opened.mean():.2f} (trials with 0..3: {counts.tolist()}), "
             f"exploration length {self.exploration_lengths.mean():.1f}, "
@@ -572,6 +587,7 @@ class CookReport:
             f"dish ruined in {self.ruined.mean():.0%}, undos per episode {self.undos.mean():.2f} "
             f"(episodes with one: {(self.undos > 0).mean():.0%}); episodes ending at stage -1..4: "
             f"{list(self.stage_counts().values())}; with A in the pot, fetched next: {self.second_pick_counts()}"
+            f"{per_recipe}"
         )
 
 

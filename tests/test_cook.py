@@ -587,6 +587,19 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     with pytest.raises(ValueError, match="MetaCook-v0"):
         behaviour_report(gym.make("MetaBandit-v0"), _Looper(), n_trials=1)
 
+    # Per recipe: none held out on the training split, unless asked for by name.
+    assert looper.by_recipe() == {} and "held-out recipes" not in looper.summary()
+    recipe = tuple(int(i) for i in looper.instructions[0])
+    assert looper.by_recipe([recipe]) == {recipe: "0% (0%)"}
+
+
+def test_behaviour_report_per_held_out_recipe():
+    env = gym.make("MetaCook-v0", split="test_instructions")
+    oracle = behaviour_report(env, env.unwrapped.oracle(), n_trials=30)
+    assert set(map(tuple, oracle.instructions.tolist())) == set(HELD_OUT_INSTRUCTIONS)
+    assert oracle.by_recipe() == {recipe: "100% (100%)" for recipe in HELD_OUT_INSTRUCTIONS}
+    assert "held-out recipes finished (optimally): (3, 6) 100% (100%), (7, 1) 100% (100%)," in oracle.summary()
+
 
 def test_replay_execution_tells_what_was_fetched_once_the_first_ingredient_was_in_the_pot():
     contents, recipe = (4, 7, 6), (7, 6)  # fridge 0 at (2, 0) holds 4, fridge 1 7, fridge 2 6
