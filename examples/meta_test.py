@@ -26,7 +26,7 @@ for that privileged agent (z = f(T)): what execution does when the code is exact
 colored and gray routes ridden while exploring, whether it read the map
 (:func:`dream_envs.bus.exploration_report`). MetaCook-v0: fridges opened while exploring, and per
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
-stage (:func:`dream_envs.cook.behaviour_report`).
+stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
 
 ``--trace K`` prints the actions of the first K trials' exploration episodes, by name where the
 env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
