@@ -108,6 +108,12 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
         assert f"{path}: execution return" in out and f"{path} diagnosis: return with z = g" in out
     assert out.count("optimal (scripted): execution return") == 1
 
+    refused = subprocess.run(
+        [sys.executable, str(EXAMPLES / "meta_test.py"), "--model", str(model), "--trace", "-1"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert refused.returncode == 2 and "--trace must be a number of trials >= 0, got -1" in refused.stderr
+
     meta_test = load_example("meta_test")
     assert type(meta_test.load_model(str(model))).__name__ == "DREAM"
     with zipfile.ZipFile(tmp_path / "dqn.zip", "w") as archive:
