@@ -16,7 +16,11 @@ not cook is one the network does not generalise to.
 Architectures compared (``--variants``): ``paper`` (body (64,), the instruction embedded with the
 paper's MLP), ``wide`` (body (128, 128), the runs' setting), and each with ``_parts``
 (``execution_instruction_mlp=False``: the per-dimension embeddings of the recipe enter the body
-directly). Each (variant, seed) takes about 2.5 minutes on one core.
+directly). Each (variant, seed) takes about 2.5 minutes on one core. Three more variants change
+the ``wide_parts`` network in one place each, as levers for composition (see :func:`q_network`):
+``film_parts`` (a product of the recipe's and the rest's projections in the first layer),
+``shared_parts`` (one ingredient table for both parts of the recipe) and ``state_parts`` (no MLP
+over the state either).
 
 Closer to what DQN does: ``--targets bootstrapped`` regresses onto r + gamma max_a' Q(s', a') of
 the network itself, recomputed every ``--target-update`` steps (a target network's hard sync),
@@ -41,6 +45,7 @@ import torch as th
 
 import dream_envs  # noqa: F401  (registers the envs)
 from dream_envs import cook
+from sb3_dream.common.embedders import MultiDiscreteEmbedder, relu_mlp
 from sb3_dream.dream.policies import ExecutionQNetwork, ProblemEncoder
 
 GAMMA = 0.99
@@ -56,6 +61,9 @@ VARIANTS = {
     "wide": dict(hidden_sizes=(128, 128), instruction_mlp=True),
     "wide_parts": dict(hidden_sizes=(128, 128), instruction_mlp=False),
 }
+# Other ways into the wide_parts network for the recipe, tried as levers for composition (this
+# probe's only; not options of DREAM). See :func:`q_network`.
+FUSIONS = ("film_parts", "shared_parts", "state_parts")
 SPLITS = ("train", "test_problems", "test_instructions")
 Pair = Tuple[int, Tuple[int, int]]
 
@@ -173,9 +181,61 @@ def bootstrapped_targets(q_net: ExecutionQNetwork, encoder: ProblemEncoder, data
     return th.as_tensor(bellman_targets(value.numpy(), data["next"], data["reward"], data["fixed"]), dtype=th.float32)
 
 
+class SharedIngredients(th.nn.Module):
+    """Both recipe parts looked up in one ingredient table, concatenated in recipe order."""
+
+    def __init__(self, n_values: int, per_dim: int = 32) -> None:
+        super().__init__()
+        self.embedding = th.nn.Embedding(n_values, per_dim)
+        self.embed_dim = 2 * per_dim
+
+    def forward(self, recipes: th.Tensor) -> th.Tensor:
+        return self.embedding(recipes.long()).flatten(-2)
+
+
+class FilmQNetwork(ExecutionQNetwork):
+    """The first body layer gains a product term: ReLU(W [e(s); e(i); z] + (A [e(s); z]) * (B e(i)))."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        first = self.body[0]
+        recipe_dim = self.instruction_embed.embed_dim
+        self.film_state = th.nn.Linear(first.in_features - recipe_dim, first.out_features)
+        self.film_recipe = th.nn.Linear(recipe_dim, first.out_features)
+
+    def q_values(self, embedding: th.Tensor, z: th.Tensor) -> th.Tensor:
+        start, stop = self.state_embed.embed_dim, self.state_embed.embed_dim + self.instruction_embed.embed_dim
+        rest = th.cat([embedding[..., :start], embedding[..., stop:], z], dim=-1)
+        product = self.film_state(rest) * self.film_recipe(embedding[..., start:stop])
+        hidden = th.relu(self.body[0](th.cat([embedding, z], dim=-1)) + product)
+        return self.head(self.body[2:](hidden))
+
+
+def q_network(variant: str, observation_space) -> ExecutionQNetwork:
+    """The execution Q-network of ``variant``: one of :data:`VARIANTS`, or of :data:`FUSIONS`, each
+    the ``wide_parts`` network changed in one place: ``film_parts`` multiplies in the recipe
+    (:class:`FilmQNetwork`), ``shared_parts`` looks both parts up in one ingredient table, and
+    ``state_parts`` drops the state's MLP too (its per-dimension embeddings enter the body)."""
+    if variant in VARIANTS:
+        return ExecutionQNetwork(observation_space, cook.N_ACTIONS, 64, **VARIANTS[variant])
+    kwargs = VARIANTS["wide_parts"]
+    if variant == "film_parts":
+        return FilmQNetwork(observation_space, cook.N_ACTIONS, 64, **kwargs)
+    q_net = ExecutionQNetwork(observation_space, cook.N_ACTIONS, 64, **kwargs)
+    if variant == "shared_parts":
+        q_net.instruction_embed = SharedIngredients(int(observation_space["instruction"].nvec.max()))
+    elif variant == "state_parts":
+        q_net.state_embed = MultiDiscreteEmbedder(observation_space["obs"].nvec, hidden_dims=())
+        in_dim = q_net.state_embed.embed_dim + q_net.instruction_embed.embed_dim + 64
+        q_net.body, _ = relu_mlp(in_dim, kwargs["hidden_sizes"])
+    else:
+        raise ValueError(f"variant={variant!r} is not one of {[*VARIANTS, *FUSIONS]}")
+    return q_net
+
+
 def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -> List[dict]:
     th.manual_seed(seed)
-    q_net = ExecutionQNetwork(env.observation_space, cook.N_ACTIONS, 64, **VARIANTS[variant])
+    q_net = q_network(variant, env.observation_space)
     encoder = ProblemEncoder(env.problem_nvec, 64)
     optimizer = th.optim.Adam([*q_net.parameters(), *encoder.parameters()], lr=args.lr)
     generator = th.Generator().manual_seed(seed)
@@ -215,7 +275,7 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=[*VARIANTS, *FUSIONS])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=20000, help="gradient steps")
     parser.add_argument("--batch-size", type=int, default=512)

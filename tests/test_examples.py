@@ -187,3 +187,29 @@ def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_ta
             cwd=tmp_path, capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert result.returncode == 2 and f"{flag} must be positive, got {value}" in result.stderr
+
+
+def test_cook_composition_probe_fusions_change_one_place_of_the_wide_parts_network():
+    probe = load_example("cook_composition_probe")
+    import gymnasium as gym
+    import torch as th
+
+    space = gym.make("MetaCook-v0").observation_space
+    states, recipes, z = th.zeros(4, 6, dtype=th.long), th.tensor([[3, 6], [6, 3], [7, 1], [1, 7]]), th.randn(4, 64)
+    base = dict(probe.q_network("wide_parts", space).named_children())
+    added_or_replaced = {"film_parts": {"film_state", "film_recipe"}, "shared_parts": {"instruction_embed"}}
+    for variant in probe.FUSIONS:
+        q_net = probe.q_network(variant, space)
+        assert q_net(states, recipes, z).shape == (4, 9)
+        changed = {name for name, child in q_net.named_children() if type(child) is not type(base.get(name))}
+        assert changed == added_or_replaced.get(variant, set())
+    # shared_parts: an ingredient has one embedding, first or second in the recipe
+    parts = probe.q_network("shared_parts", space).instruction_embed(recipes).reshape(4, 2, -1)
+    assert th.equal(parts[0, 0], parts[1, 1]) and th.equal(parts[2, 1], parts[3, 0])
+    assert not th.equal(parts[0, 0], parts[0, 1])
+    # film_parts: the recipe multiplies into the first layer; state_parts: no MLP over the state
+    film = probe.q_network("film_parts", space)
+    assert film.film_recipe.in_features == film.instruction_embed.embed_dim == 64
+    assert probe.q_network("state_parts", space).state_embed.embed_dim == 6 * 32
+    with pytest.raises(ValueError, match="variant='deep' is not one of"):
+        probe.q_network("deep", space)
