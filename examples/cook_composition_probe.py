@@ -16,8 +16,9 @@ not cook is one the network does not generalise to.
 Architectures compared (``--variants``): ``paper`` (body (64,), the instruction embedded with the
 paper's MLP), ``wide`` (body (128, 128), the runs' setting), and each with ``_parts``
 (``execution_instruction_mlp=False``: the per-dimension embeddings of the recipe enter the body
-directly). Each (variant, seed) takes about 2.5 minutes on one core. Three more variants change
-the ``wide_parts`` network in one place each, as levers for composition (see :func:`q_network`):
+directly), and ``wider_parts`` (body (256, 256), without the MLP). Each (variant, seed) takes
+about 2.5 minutes on one core (``wider_parts`` about 4). Three more variants change the
+``wide_parts`` network in one place each, as levers for composition (see :func:`q_network`):
 ``film_parts`` (a product of the recipe's and the rest's projections in the first layer),
 ``shared_parts`` (one ingredient table for both parts of the recipe) and ``state_parts`` (no MLP
 over the state either).
@@ -60,6 +61,7 @@ VARIANTS = {
     "paper_parts": dict(hidden_sizes=(64,), instruction_mlp=False),
     "wide": dict(hidden_sizes=(128, 128), instruction_mlp=True),
     "wide_parts": dict(hidden_sizes=(128, 128), instruction_mlp=False),
+    "wider_parts": dict(hidden_sizes=(256, 256), instruction_mlp=False),
 }
 # Other ways into the wide_parts network for the recipe, tried as levers for composition (this
 # probe's only; not options of DREAM). See :func:`q_network`.
