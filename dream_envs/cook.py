@@ -542,6 +542,11 @@ class CookReport:
         return self.stages == DONE_STAGE
 
     @property
+    def finished_optimally(self) -> np.ndarray:
+        """Per execution episode: its return is the optimal one (finished in the fewest steps)."""
+        return np.isclose(self.execution_returns, self.optimal_returns)
+
+    @property
     def ruined(self) -> np.ndarray:
         return self.stages == RUINED
 
@@ -564,7 +569,7 @@ class CookReport:
     def by_recipe(self, recipes: Sequence[Tuple[int, int]] = HELD_OUT_INSTRUCTIONS) -> Dict[Tuple[int, int], str]:
         """Per recipe among ``recipes`` that the episodes met (default: the held-out ones): the
         share of its episodes finished and, in brackets, finished optimally, e.g. ``"61% (28%)"``."""
-        optimal = np.isclose(self.execution_returns, self.optimal_returns)
+        optimal = self.finished_optimally
         shares = {}
         for recipe in recipes:
             mine = (self.instructions == np.asarray(recipe)).all(axis=1)
@@ -583,7 +588,7 @@ class CookReport:
             f"exploration length {self.exploration_lengths.mean():.1f}, "
             f"execution return {self.execution_returns.mean():.3f} (optimal {self.optimal_returns.mean():.3f}); "
             f"recipe finished in {self.finished.mean():.0%} of execution episodes "
-            f"({np.isclose(self.execution_returns, self.optimal_returns).mean():.0%} optimally), "
+            f"({self.finished_optimally.mean():.0%} optimally), "
             f"dish ruined in {self.ruined.mean():.0%}, undos per episode {self.undos.mean():.2f} "
             f"(episodes with one: {(self.undos > 0).mean():.0%}); episodes ending at stage -1..4: "
             f"{list(self.stage_counts().values())}; with A in the pot, fetched next: {self.second_pick_counts()}"
