@@ -50,6 +50,7 @@ from sb3_dream.common.embedders import MultiDiscreteEmbedder, relu_mlp
 from sb3_dream.dream.policies import ExecutionQNetwork, ProblemEncoder
 
 GAMMA = 0.99
+Z_DIM = 64  # DREAM's z (the paper's size), from the encoder f into the execution Q-network
 HORIZON = 20
 # The end-episode, no-op and ride-bus actions never help cook: left out of the targets and argmax.
 ACTIONS = [a for a in range(cook.N_ACTIONS) if a not in (cook.END_EPISODE, cook.NOOP, cook.RIDE_BUS)]
@@ -219,16 +220,16 @@ def q_network(variant: str, observation_space) -> ExecutionQNetwork:
     (:class:`FilmQNetwork`), ``shared_parts`` looks both parts up in one ingredient table, and
     ``state_parts`` drops the state's MLP too (its per-dimension embeddings enter the body)."""
     if variant in VARIANTS:
-        return ExecutionQNetwork(observation_space, cook.N_ACTIONS, 64, **VARIANTS[variant])
+        return ExecutionQNetwork(observation_space, cook.N_ACTIONS, Z_DIM, **VARIANTS[variant])
     kwargs = VARIANTS["wide_parts"]
     if variant == "film_parts":
-        return FilmQNetwork(observation_space, cook.N_ACTIONS, 64, **kwargs)
-    q_net = ExecutionQNetwork(observation_space, cook.N_ACTIONS, 64, **kwargs)
+        return FilmQNetwork(observation_space, cook.N_ACTIONS, Z_DIM, **kwargs)
+    q_net = ExecutionQNetwork(observation_space, cook.N_ACTIONS, Z_DIM, **kwargs)
     if variant == "shared_parts":
         q_net.instruction_embed = SharedIngredients(int(observation_space["instruction"].nvec.max()))
     elif variant == "state_parts":
         q_net.state_embed = MultiDiscreteEmbedder(observation_space["obs"].nvec, hidden_dims=())
-        in_dim = q_net.state_embed.embed_dim + q_net.instruction_embed.embed_dim + 64
+        in_dim = q_net.state_embed.embed_dim + q_net.instruction_embed.embed_dim + Z_DIM
         q_net.body, _ = relu_mlp(in_dim, kwargs["hidden_sizes"])
     else:
         raise ValueError(f"variant={variant!r} is not one of {[*VARIANTS, *FUSIONS]}")
@@ -238,7 +239,7 @@ def q_network(variant: str, observation_space) -> ExecutionQNetwork:
 def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -> List[dict]:
     th.manual_seed(seed)
     q_net = q_network(variant, env.observation_space)
-    encoder = ProblemEncoder(env.problem_nvec, 64)
+    encoder = ProblemEncoder(env.problem_nvec, Z_DIM)
     optimizer = th.optim.Adam([*q_net.parameters(), *encoder.parameters()], lr=args.lr)
     generator = th.Generator().manual_seed(seed)
     targets = data["targets"]
