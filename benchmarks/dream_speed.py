@@ -11,6 +11,7 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
     python benchmarks/dream_speed.py --execution-target-z encoder   # the authors' target z
     python benchmarks/dream_speed.py --fused-adam            # torch.optim.Adam(fused=True)
     python benchmarks/dream_speed.py --n-envs 1 --profile 60 # + torch.profiler over 60 updates
+    python benchmarks/dream_speed.py --env SignNav3D-v0 --device cuda   # the networks on a GPU
 """
 
 from __future__ import annotations
@@ -25,14 +26,17 @@ from stable_baselines3.common.env_util import make_vec_env
 from sb3_dream import DREAM
 
 
-def timed(obj, name: str, totals: dict, key: str) -> None:
+def timed(obj, name: str, totals: dict, key: str, device: th.device) -> None:
     original = getattr(obj, name)
+    # CUDA kernels run asynchronously: wait for them, or their time lands on whichever part syncs next
+    sync = th.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
     def wrapper(*args, **kwargs):
         start = time.perf_counter()
         try:
             return original(*args, **kwargs)
         finally:
+            sync()
             totals[key] += time.perf_counter() - start
 
     setattr(obj, name, wrapper)
@@ -60,9 +64,9 @@ def measure(
             network.forward = th.compile(network.forward, dynamic=True)
     model.learn(warmup)  # fill the buffers (and compile) so that both agents update from here on
     totals: dict = defaultdict(float)
-    timed(model.env, "step", totals, "env")
-    timed(model, "_act", totals, "act")
-    timed(model, "train", totals, "update")
+    timed(model.env, "step", totals, "env", model.device)
+    timed(model, "_act", totals, "act", model.device)
+    timed(model, "train", totals, "update", model.device)
     start = time.perf_counter()
     model.learn(steps, reset_num_timesteps=False)
     wall = time.perf_counter() - start
@@ -75,13 +79,22 @@ def measure(
 
 def profile(model: DREAM, n_updates: int) -> str:
     """torch.profiler's operator table over ``n_updates`` updates (one of each part, batch 32)."""
-    with th.profiler.profile(activities=[th.profiler.ProfilerActivity.CPU]) as prof:
+    activities = [th.profiler.ProfilerActivity.CPU]
+    on_gpu = model.device.type == "cuda"
+    if on_gpu:  # the kernels' own time too: a GPU waiting for kernel launches shows far less than the host
+        activities.append(th.profiler.ProfilerActivity.CUDA)
+    with th.profiler.profile(activities=activities) as prof:
         model.train(n_updates, model.batch_size)
+        if on_gpu:
+            th.cuda.synchronize()
     ops = prof.key_averages()
     total = sum(op.self_cpu_time_total for op in ops)
     lstm = sum(op.self_cpu_time_total for op in ops if "rnn" in op.key or "lstm" in op.key)
     table = ops.table(sort_by="self_cpu_time_total", row_limit=15)
-    return f"{table}\n{total / n_updates / 1e3:.1f} ms per update, {lstm / total:.0%} of it in LSTM kernels"
+    summary = f"{total / n_updates / 1e3:.1f} ms of host time per update, {lstm / total:.0%} of it in LSTM kernels"
+    if on_gpu:
+        summary += f" (launched; the table's Self CUDA time total is the GPU's own, over {n_updates} updates)"
+    return f"{table}\n{summary}"
 
 
 def main() -> None:
@@ -100,6 +113,7 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
     parser.add_argument("--fused-adam", action="store_true", help="policy_kwargs optimizer_kwargs fused=True")
+    parser.add_argument("--device", default="cpu", help="torch device of the networks (cpu, cuda, auto)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     args = parser.parse_args()
     th.set_num_threads(args.threads)
@@ -107,7 +121,7 @@ def main() -> None:
     print(
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
         f" parallel_updates={args.parallel_updates} compile={args.compile}"
-        f" execution_target_z={args.execution_target_z} fused Adam={args.fused_adam}"
+        f" execution_target_z={args.execution_target_z} fused Adam={args.fused_adam} device={args.device}"
     )
     policy_kwargs = {"optimizer_kwargs": {"fused": True}} if args.fused_adam else None
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
@@ -116,6 +130,7 @@ def main() -> None:
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
             compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
             execution_target_z=args.execution_target_z, profile_updates=args.profile, policy_kwargs=policy_kwargs,
+            device=args.device,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")

@@ -87,7 +87,8 @@ def _gl_error_message(err: BaseException) -> str:
     return (
         f"SignNav3D-v0 needs OpenGL to render its 3D views, but none could be initialised through {mode}: "
         f"{type(err).__name__}: {err}. On a headless Linux machine install Mesa's EGL and OpenGL libraries "
-        "(e.g. `apt-get install libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri`) and leave DISPLAY unset "
+        "and the GLU and FreeType that pyglet loads (e.g. `apt-get install libegl1 libgl1 libegl-mesa0 "
+        "libgl1-mesa-dri libglu1-mesa libfreetype6`; with an NVIDIA driver, its EGL serves) and leave DISPLAY unset "
         "(or set PYOPENGL_PLATFORM=egl); "
         "on a desktop, set DISPLAY to a running X server with OpenGL."
     )
