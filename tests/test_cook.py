@@ -26,6 +26,7 @@ from dream_envs.cook import (
     RIGHT,
     RUINED,
     UP,
+    CookReport,
     MetaCookEnv,
     _replay_execution,
     behaviour_report,
@@ -591,6 +592,24 @@ def test_behaviour_report_counts_fridges_finished_recipes_and_undos():
     assert looper.by_recipe() == {} and "held-out recipes" not in looper.summary()
     recipe = tuple(int(i) for i in looper.instructions[0])
     assert looper.by_recipe([recipe]) == {recipe: "0% (0%)"}
+
+
+def test_cook_report_finished_optimally_only_at_the_optimal_return():
+    # Three episodes of recipe (3, 6): finished in the fewest steps, finished two steps late, ruined.
+    report = CookReport(
+        fridges_opened=np.array([3]),
+        exploration_lengths=np.array([8]),
+        execution_returns=np.array([0.4, 0.2, -1.0]),
+        optimal_returns=np.array([0.4, 0.4, 0.4]),
+        stages=np.array([4, 4, RUINED]),
+        undos=np.zeros(3, dtype=int),
+        instructions=np.array([[3, 6]] * 3),
+        second_picks=np.array([6, 6, 2]),
+    )
+    assert report.finished.tolist() == [True, True, False]
+    assert report.finished_optimally.tolist() == [True, False, False]
+    assert report.by_recipe([(3, 6)]) == {(3, 6): "67% (33%)"}
+    assert "recipe finished in 67% of execution episodes (33% optimally)" in report.summary()
 
 
 def test_behaviour_report_per_held_out_recipe():
