@@ -18,9 +18,11 @@ problem of the split instead of drawing them.
 
 ``--diagnose`` (DREAM only) also runs :func:`sb3_dream.dream.diagnose`: the same trials once more
 with the execution policy given the privileged z = f(T), to tell whether exploration (and the
-decoder) or execution limits the model, and once more with z ~ N(f(T), rho^2 I), the noisy code
-the execution policy trains on. With ``--exploration`` too, the behaviour report is also made
-for that privileged agent (z = f(T)): what execution does when the code is exactly right.
+decoder) or execution limits the model, once more with z ~ N(f(T), rho^2 I), the noisy code
+the execution policy trains on, and once more with the env's scripted optimal explorer in place of
+the exploration policy and z = g of its trajectory, to tell the explorer from the decoder. With
+``--exploration`` too, the behaviour report is also made for that privileged agent (z = f(T)):
+what execution does when the code is exactly right.
 
 ``--exploration`` reports what each agent does, as the paper's Figures 7 and 8 show it. MetaBus-v0:
 colored and gray routes ridden while exploring, whether it read the map
@@ -81,7 +83,9 @@ def main() -> None:
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--diagnose", action="store_true", help="DREAM: also meta-test on z = f(T) and on z ~ N(f(T), rho^2 I)"
+        "--diagnose",
+        action="store_true",
+        help="DREAM: also meta-test on z = f(T), on z ~ N(f(T), rho^2 I) and on g of the optimal exploration",
     )
     parser.add_argument(
         "--exploration", action="store_true", help="MetaBus-v0 and MetaCook-v0: what each agent explores and does"
@@ -152,7 +156,13 @@ def main() -> None:
             prefix = "" if len(models) == 1 else f"{path} "
             print(
                 f"  {prefix}diagnosis: {d.returns_text()}; "
-                f"||g - f||^2 {d.decoder_error:.3f} (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
+                f"||g - f||^2 {d.decoder_error:.3f}"
+                + (
+                    f" (optimal exploration: {d.decoder_error_optimal_exploration:.3f})"
+                    if d.decoder_error_optimal_exploration is not None
+                    else ""
+                )
+                + f" (||f||^2 {d.f_norm_sq:.2f}, ||f(T) - f(T')||^2 {d.f_spread:.2f}); "
                 "variance of f explained by each problem feature: "
                 + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)
             )

@@ -482,6 +482,21 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     with pytest.raises(ValueError, match="z_source='h' is not valid; accepted values: 'g', 'f', 'f_noisy'"):
         PrivilegedAgent(bus_model, ids, "h")
 
+    # With the env's oracle as the explorer: the env sees the oracle's exploration actions, the
+    # decoder reads that trajectory (its z is g of it), and execution is the model's.
+    from dream_envs import make_oracle
+    from dream_envs.core import play_trials
+
+    env = gym.make("MetaBus-v0", split="test")
+    guided = PrivilegedAgent(bus_model, ids, "g", explorer=make_oracle(env))
+    trials = list(play_trials(env, guided, 2, seed=7, problem_ids=ids))
+    oracle_trials = list(play_trials(env, make_oracle(env), 2, seed=7, problem_ids=ids))
+    assert [t["exploration_actions"] for t in trials] == [t["exploration_actions"] for t in oracle_trials]
+    actions = trials[1]["exploration_actions"]
+    assert guided.state.actions[0, : len(actions)].tolist() == actions  # what the decoder read
+    assert d.return_g_optimal_exploration is not None and d.decoder_error_optimal_exploration > 0
+    assert "with z = g of the optimal exploration" in d.returns_text()
+
     # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
     def perfect_decoder(state, idx, n):
         return bus_model._encode(np.full(len(idx), 40), noisy=False)
@@ -490,6 +505,9 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
     assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
     assert perfect.return_g == perfect.return_f
+    # ... and so does the decoder of the optimal exploration: the three runs act alike
+    assert perfect.decoder_error_optimal_exploration == pytest.approx(0.0, abs=1e-8)
+    assert perfect.return_g_optimal_exploration == perfect.return_f
     # The noisy code's run draws its noise from the seed; with a vanishing rho^2 it is f(T)'s run.
     assert d.return_f_noisy is not None
     monkeypatch.setattr(bus_model, "encoder_variance", 1e-12)

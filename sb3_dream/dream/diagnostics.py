@@ -17,6 +17,15 @@ problem ID (never available at meta-test, so this is a diagnostic, not an evalua
 problems, instructions and env seeds, and greedy policies, so the exploration trajectories are the
 same in both.
 
+``return_g_optimal_exploration`` tells the explorer from the decoder when ``return_f`` is well above
+``return_g``: the trials once more with the env's scripted optimal explorer (its ``oracle()``) in
+place of the exploration policy, the decoder reading that trajectory and execution acting on its
+g. Close to ``return_f``: the decoder reads what an optimal exploration finds, and the exploration
+policy is what falls short (it does not look where it should). Close to ``return_g``: the decoder
+does not use what the optimal exploration shows either (it never learned to: a decoder trains only
+on the exploration policy's own trajectories). ``decoder_error_optimal_exploration`` is its
+||g - f(T)||^2. ``None`` for an env without a scripted oracle.
+
 ``return_f_noisy`` runs the execution policy a third time, on z ~ N(f(T), rho^2 I): the code that
 half of its training (Equation 2's f branch) gives it. Well below ``return_f``, the bottleneck's
 noise hides much of the code from the execution policy (rho^2 per dimension against the spread
@@ -32,7 +41,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from dream_envs.core import check_choice, check_positive_int
+from dream_envs.core import EXPLORATION, ScriptedAgent, check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamTrialAgent
 from sb3_dream.evaluation import _make_env, evaluate_meta
 
@@ -50,6 +59,9 @@ class DreamDiagnosis:
     f_variance_by_feature: List[float]  # per problem-feature dimension, see f_variance_by_feature()
     exploration_length: float
     n_trials: int
+    # the env's scripted optimal explorer, then z = g of its trajectory; None without an oracle
+    return_g_optimal_exploration: Optional[float] = None
+    decoder_error_optimal_exploration: Optional[float] = None
 
     def as_dict(self) -> Dict[str, Any]:
         return asdict(self)
@@ -59,6 +71,8 @@ class DreamDiagnosis:
         text = f"return with z = g {self.return_g:.3f}, with z = f(T) {self.return_f:.3f}"
         if self.return_f_noisy is not None:
             text += f", with z ~ N(f(T), rho^2 I) {self.return_f_noisy:.3f}"
+        if self.return_g_optimal_exploration is not None:
+            text += f", with z = g of the optimal exploration {self.return_g_optimal_exploration:.3f}"
         return text
 
 
@@ -69,16 +83,42 @@ class PrivilegedAgent(DreamTrialAgent):
     """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
     f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``) of trial k's problem
     ``problem_ids[k % len(problem_ids)]``: a diagnostic (it is handed the problem IDs), never a
-    meta-test agent. Play the trials in order on those problems (the trial runners' ``problem_ids=``)."""
+    meta-test agent. Play the trials in order on those problems (the trial runners' ``problem_ids=``).
 
-    def __init__(self, model: DREAM, problem_ids: Sequence[int], z_source: str = "f", seed: int = 0) -> None:
+    With ``explorer`` (a scripted agent, e.g. the env's oracle) that agent takes the exploration
+    actions instead of the exploration policy, and the decoder reads its trajectory.
+    """
+
+    def __init__(
+        self,
+        model: DREAM,
+        problem_ids: Sequence[int],
+        z_source: str = "f",
+        seed: int = 0,
+        explorer: Optional[ScriptedAgent] = None,
+    ) -> None:
         self.z_source = check_choice("z_source", z_source, Z_SOURCES)
+        self.explorer = explorer
         generator = th.Generator(device=model.device).manual_seed(seed)
         # trial k's code: f(T) of its problem (noisy for "f_noisy")
         ids = np.asarray(problem_ids, dtype=np.int64)
         self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: List[np.ndarray] = []
         super().__init__(model, deterministic=True)
+
+    def reset(self) -> None:
+        super().reset()
+        if self.explorer is not None:
+            self.explorer.reset()
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        action = super().act(obs, info)
+        if self.explorer is None or int(np.asarray(obs["phase"]).reshape(-1)[0]) != EXPLORATION:
+            return action
+        # the explorer's action replaces the policy's in the trajectory the decoder reads
+        action = int(self.explorer.act(obs, info))
+        self.state.actions[0, self.state.length[0] - 1] = action
+        return action
 
     def _explored(self) -> None:
         k = len(self.g)  # one exploration per trial, trials in order
@@ -145,11 +185,22 @@ def diagnose(
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
         agents[source] = PrivilegedAgent(model, problem_ids, source, seed)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
+    try:
+        explorer: Optional[ScriptedAgent] = trial_env.unwrapped.oracle()
+    except (AttributeError, NotImplementedError):
+        explorer = None
+    if explorer is not None:
+        agents["optimal_exploration"] = PrivilegedAgent(model, problem_ids, "g", seed, explorer=explorer)
+        results["optimal_exploration"] = evaluate_meta(
+            agents["optimal_exploration"], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids
+        )
     features = trial_env.unwrapped.problem_feature_table()[split_ids]
     if isinstance(env, str):
         trial_env.close()
 
     f, g = agents["g"].f, np.stack(agents["g"].g)
+    optimal = results.get("optimal_exploration")
+    g_optimal = np.stack(agents["optimal_exploration"].g) if optimal is not None else None
     f_split = model._encode(split_ids, noisy=False)
     sq_norms = (f_split**2).sum(axis=1)
     # mean over ordered pairs T != T' of ||f(T) - f(T')||^2, without the [n, n, z] tensor
@@ -165,4 +216,8 @@ def diagnose(
         f_variance_by_feature=f_variance_by_feature(f_split, features),
         exploration_length=float(results["g"].exploration_lengths.mean()),
         n_trials=n_trials,
+        return_g_optimal_exploration=optimal.mean if optimal is not None else None,
+        decoder_error_optimal_exploration=(
+            float(((g_optimal - f) ** 2).sum(axis=1).mean()) if g_optimal is not None else None
+        ),
     )
