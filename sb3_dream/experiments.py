@@ -602,7 +602,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
     if run.algo in ("dream", "dream_no_bottleneck"):
         from sb3_dream.dream import diagnose
 
-        # Which side limits the final model: meta-test vs the execution policy given z = f(T).
+        # Which side limits the final model: meta-test vs the execution policy given z = f(T)
+        # (and vs the decoder reading the env's optimal exploration).
         diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
         info["diagnosis"] = diagnosis.as_dict()
         print(

@@ -95,6 +95,7 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert out.count("optimal (scripted) trial ") == 2 and out.count("DREAM trial ") == 2
     assert "optimal (scripted) trial 0, problem " in out and ": right right right down end\n" in out
     assert "diagnosis: return with z = g " in out and "with z = f(T) " in out and "with z ~ N(f(T), rho^2 I) " in out
+    assert "with z = g of the optimal exploration " in out and "(optimal exploration: " in out
     # The oracle reads the map in every trial and ends the exploration episode after 5 steps.
     assert "optimal (scripted) exploring: colored routes seen 0.00" in out
     assert "map read 100%, exploration length 5.0, execution return 0.800" in out

@@ -109,6 +109,7 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     assert info["settings"]["steps"] == 120 and info["final"]["test"]["env_steps"] == 120
     diagnosis = info["diagnosis"]  # DREAM runs end with sb3_dream.dream.diagnose of the final model
     assert diagnosis["n_trials"] == 4 and 0 <= diagnosis["return_g"] <= 1 and 0 <= diagnosis["return_f"] <= 1
+    assert 0 <= diagnosis["return_g_optimal_exploration"] <= 1 and diagnosis["decoder_error_optimal_exploration"] > 0
 
     with open(out / "summary.csv") as f:
         (row,) = list(csv.DictReader(f))
