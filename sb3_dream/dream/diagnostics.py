@@ -185,11 +185,9 @@ def diagnose(
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
         agents[source] = PrivilegedAgent(model, problem_ids, source, seed)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
-    try:
-        explorer: Optional[ScriptedAgent] = trial_env.unwrapped.oracle()
-    except (AttributeError, NotImplementedError):
-        explorer = None
-    if explorer is not None:
+    make_oracle = getattr(trial_env.unwrapped, "oracle", None)  # custom trial envs may have none
+    if make_oracle is not None:
+        explorer: ScriptedAgent = make_oracle()
         agents["optimal_exploration"] = PrivilegedAgent(model, problem_ids, "g", seed, explorer=explorer)
         results["optimal_exploration"] = evaluate_meta(
             agents["optimal_exploration"], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids
