@@ -41,6 +41,7 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
+from dream_envs import make_oracle
 from dream_envs.core import EXPLORATION, ScriptedAgent, check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamTrialAgent
 from sb3_dream.evaluation import _make_env, evaluate_meta
@@ -185,9 +186,8 @@ def diagnose(
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
         agents[source] = PrivilegedAgent(model, problem_ids, source, seed)
         results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
-    make_oracle = getattr(trial_env.unwrapped, "oracle", None)  # custom trial envs may have none
-    if make_oracle is not None:
-        explorer: ScriptedAgent = make_oracle()
+    if hasattr(trial_env.unwrapped, "oracle"):  # custom trial envs may have none
+        explorer = make_oracle(trial_env)
         agents["optimal_exploration"] = PrivilegedAgent(model, problem_ids, "g", seed, explorer=explorer)
         results["optimal_exploration"] = evaluate_meta(
             agents["optimal_exploration"], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids
@@ -196,9 +196,12 @@ def diagnose(
     if isinstance(env, str):
         trial_env.close()
 
-    f, g = agents["g"].f, np.stack(agents["g"].g)
+    f = agents["g"].f
+
+    def decoder_error(agent: PrivilegedAgent) -> float:  # mean ||g(tau^exp) - f(T)||^2 over the trials
+        return float(((np.stack(agent.g) - f) ** 2).sum(axis=1).mean())
+
     optimal = results.get("optimal_exploration")
-    g_optimal = np.stack(agents["optimal_exploration"].g) if optimal is not None else None
     f_split = model._encode(split_ids, noisy=False)
     sq_norms = (f_split**2).sum(axis=1)
     # mean over ordered pairs T != T' of ||f(T) - f(T')||^2, without the [n, n, z] tensor
@@ -208,14 +211,12 @@ def diagnose(
         return_g=results["g"].mean,
         return_f=results["f"].mean,
         return_f_noisy=results["f_noisy"].mean if "f_noisy" in results else None,
-        decoder_error=float(((g - f) ** 2).sum(axis=1).mean()),
+        decoder_error=decoder_error(agents["g"]),
         f_norm_sq=float((f**2).sum(axis=1).mean()),
         f_spread=float(pair_sum / max(1, n * (n - 1))),
         f_variance_by_feature=f_variance_by_feature(f_split, features),
         exploration_length=float(results["g"].exploration_lengths.mean()),
         n_trials=n_trials,
-        return_g_optimal_exploration=optimal.mean if optimal is not None else None,
-        decoder_error_optimal_exploration=(
-            float(((g_optimal - f) ** 2).sum(axis=1).mean()) if g_optimal is not None else None
-        ),
+        return_g_optimal_exploration=None if optimal is None else optimal.mean,
+        decoder_error_optimal_exploration=None if optimal is None else decoder_error(agents["optimal_exploration"]),
     )
