@@ -151,6 +151,17 @@ def test_predict_state_follows_the_recurrent_convention(bus_model):
     assert -2.5 <= mean <= 1.0
 
 
+def test_training_mode_reaches_every_online_network(bus_model):
+    policy = bus_model.policy
+    policy.set_training_mode(True)
+    assert policy.training and all(net.training for net in policy.onlines())
+    policy.set_training_mode(False)
+    assert not policy.training and not any(net.training for net in policy.onlines())
+    policy.execution_q.train(True)  # a network switched on its own is switched back, not skipped
+    policy.set_training_mode(False)
+    assert not policy.execution_q.training
+
+
 def test_save_load_round_trip(bus_model, tmp_path):
     bus_model.save(tmp_path / "dream.zip")
     loaded = DREAM.load(tmp_path / "dream.zip")

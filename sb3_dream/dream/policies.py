@@ -304,6 +304,9 @@ class DreamPolicy(BasePolicy):
         raise NotImplementedError("DREAM acts through DREAM.predict, which keeps the trial's state")
 
     def set_training_mode(self, mode: bool) -> None:
-        for net in self.onlines():
+        onlines = self.onlines()
+        if self.training == mode and all(net.training == mode for net in onlines):
+            return  # called at every rollout, update and meta-test step: skip walking the module tree
+        for net in onlines:
             net.train(mode)
         self.training = mode
