@@ -14,7 +14,9 @@ optuna = pytest.importorskip("optuna")
 
 from sb3_dream.dream import DREAM  # noqa: E402
 from sb3_dream.rl2dqn import RL2DQN  # noqa: E402
-from sb3_dream.zoo import ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
+from sb3_dream.dream.presets import PRESETS  # noqa: E402
+from sb3_dream.experiments import RL2DQN_PRESETS  # noqa: E402
+from sb3_dream.zoo import SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
 from sb3_dream.zoo.cli import enjoy_args, main, train_args  # noqa: E402
 from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS  # noqa: E402
 
@@ -84,6 +86,46 @@ def test_packaged_hyperparameters_are_the_papers_defaults_for_every_env(algo):
         assert hyper == expected, env_id
 
 
+# The schedules of the README's measured runs: the runner's --preset fast for each algorithm.
+FAST = {"dream": PRESETS["fast"], "rl2_dqn": RL2DQN_PRESETS["fast"]}
+ZOO_KEYS = {"n_timesteps", "n_envs", "policy", "policy_kwargs"}
+
+
+@pytest.mark.parametrize("algo", ZOO_ALGOS)
+def test_measured_settings_are_the_runners_fast_schedules_and_valid_arguments(algo):
+    cls = algorithms()[algo]
+    arguments = set(inspect.signature(cls.__init__).parameters)
+    config = yaml.safe_load(hyperparams_path(algo, "measured").read_text())
+    assert set(config) == set(ENVS)
+    for env_id in ("MetaBus-v0", "MetaCook-v0"):  # the envs of the README's measured runs
+        params = config[env_id]
+        assert params["n_envs"] == 4 and params["n_timesteps"] >= 6e5
+        assert {k: params[k] for k in FAST[algo]} == FAST[algo], env_id
+        hyper = {k: v for k, v in params.items() if k not in ZOO_KEYS}
+        assert set(hyper) <= arguments, env_id
+        policy_kwargs = eval(params.get("policy_kwargs", "dict()"))  # as rl-zoo3 reads it
+        small = {"buffer_size": 50, **({"execution_buffer_size": 100} if algo == "dream" else {})}
+        model = cls(params["policy"], env_id, policy_kwargs=policy_kwargs, **{**hyper, **small})
+        for key, value in hyper.items():
+            assert getattr(model, key) == value, (env_id, key)
+    assert config["SignNav3D-v0"]["policy"] == POLICIES[algo].get("SignNav3D-v0", "DreamPolicy")
+    with pytest.raises(ValueError, match="settings='fast' is not valid; accepted values: 'paper', 'measured'"):
+        hyperparams_path(algo, "fast")
+
+
+def test_cli_settings_picks_the_packaged_file():
+    args = train_args(["--algo", "dream", "--env", "MetaCook-v0", "--settings", "measured", "-n", "5"])
+    assert args[:2] == ["--conf-file", str(hyperparams_path("dream", "measured"))]
+    assert "--settings" not in args and args[-2:] == ["-n", "5"]  # rl-zoo3 never sees the flag
+    paper = train_args(["--algo", "rl2_dqn", "--settings=paper"])
+    assert paper[:2] == ["--conf-file", str(hyperparams_path("rl2_dqn"))]
+    with pytest.raises(SystemExit, match="settings='fast' is not valid; accepted values: paper, measured"):
+        train_args(["--algo", "dream", "--settings", "fast"])
+    with pytest.raises(SystemExit, match="--settings picks the packaged --conf-file"):
+        train_args(["--algo", "dream", "--settings", "measured", "--conf-file", "my.yml"])
+    assert SETTINGS == ("paper", "measured")
+
+
 def test_cli_defaults_put_first_so_user_flags_win():
     args = train_args(["--algo", "dream", "--env", "MetaBus-v0", "--env-kwargs", "variant:'map'", "split:'all'"])
     assert args[:2] == ["--conf-file", str(hyperparams_path("dream"))]
@@ -140,6 +182,19 @@ def test_zoo_train_then_enjoy(algo, tmp_path, capsys):
     # whole trials (exploration + execution) ran through predict(state, episode_start)
     assert "adding --no-render" in enjoy.stdout and "Mean reward:" in enjoy.stdout
     assert enjoy.stdout.count("Episode Reward:") >= 2
+
+
+def test_zoo_trains_with_the_measured_settings(tmp_path, capsys):
+    logs = tmp_path / "logs"
+    main(
+        ["train", "--algo", "dream", "--env", "MetaCook-v0", "--settings", "measured", "-n", "240",
+         "--seed", "0", "--num-threads", "1", "-f", str(logs), "-params", *TINY["dream"]]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert str(hyperparams_path("dream", "measured")) in out and "('n_envs', 4)" in out
+    model = DREAM.load(logs / "dream" / "MetaCook-v0_1" / "MetaCook-v0.zip")
+    assert model.n_envs == 4 and model.reward_penalty == 0.1 and model.eps_decay_steps == 30_000
+    assert model.policy.execution_hidden_sizes == (256, 256) and not model.policy.execution_instruction_mlp
 
 
 def test_zoo_optimize_runs_trials_with_the_dream_sampler(tmp_path, capsys):

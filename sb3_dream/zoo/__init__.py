@@ -12,6 +12,9 @@ zoo name     algorithm                             default hyperparameter file
 ``rl2_dqn``  :class:`sb3_dream.rl2dqn.RL2DQN`      ``sb3_dream/zoo/hyperparams/rl2_dqn.yml``
 ===========  ====================================  ================================
 
+Each also ships ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings measured``): the
+settings of the README's measured runs, with what they reached.
+
 The ``sb3-dream-zoo`` command (:mod:`sb3_dream.zoo.cli`) registers them, imports
 :mod:`dream_envs` (so ``--env MetaBus-v0`` resolves) and runs rl-zoo3's own ``train``,
 ``enjoy`` or ``record_video`` with every flag passed through::
@@ -34,6 +37,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
 ZOO_ALGOS = ("dream", "rl2_dqn")
+SETTINGS = ("paper", "measured")  # the packaged hyperparameter files of each algorithm
 
 
 def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
@@ -44,11 +48,18 @@ def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
     return {"dream": DREAM, "rl2_dqn": RL2DQN}
 
 
-def hyperparams_path(algo: str) -> pathlib.Path:
-    """The packaged hyperparameter file of ``algo`` ("dream" or "rl2_dqn"), usable as ``--conf-file``."""
+def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
+    """The packaged hyperparameter file of ``algo`` ("dream" or "rl2_dqn"), usable as ``--conf-file``.
+
+    ``settings="paper"``: the paper's values (the constructors' defaults); ``"measured"``: the
+    settings of the README's measured runs (the ``fast`` schedules and DREAM's options), with what
+    they reached in the file's header.
+    """
     if algo not in ZOO_ALGOS:
         raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")
-    return HYPERPARAMS_DIR / f"{algo}.yml"
+    if settings not in SETTINGS:
+        raise ValueError(f"settings={settings!r} is not valid; accepted values: {', '.join(map(repr, SETTINGS))}")
+    return HYPERPARAMS_DIR / (f"{algo}.yml" if settings == "paper" else f"{algo}_{settings}.yml")
 
 
 def register() -> None:
@@ -77,4 +88,4 @@ def register() -> None:
         zoo_opt.HYPERPARAMS_CONVERTER.update(CONVERTERS)
 
 
-__all__ = ["HYPERPARAMS_DIR", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]
+__all__ = ["HYPERPARAMS_DIR", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]

@@ -12,7 +12,8 @@ envs; a flag given on the command line always wins, as the defaults are put firs
 
 * ``train`` with ``--algo dream|rl2_dqn``: ``--conf-file`` defaults to the packaged
   hyperparameters (:func:`sb3_dream.zoo.hyperparams_path`), as rl-zoo3 looks only inside its own
-  package. With a trial env and no ``--eval-env-kwargs``, the zoo's evaluation (``--eval-freq``)
+  package: the paper's, or with ``--settings measured`` (this wrapper's one flag of its own) those
+  of the README's measured runs. With a trial env and no ``--eval-env-kwargs``, the zoo's evaluation (``--eval-freq``)
   runs on the held-out problems: the eval env gets ``--env-kwargs`` plus ``split:'test'``.
 * ``enjoy`` / ``record_video``: ``--folder`` defaults to ``logs`` (where ``train`` writes) rather
   than the zoo's pretrained-agent folder, which would try to download from the Hugging Face hub;
@@ -25,9 +26,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
-from typing import Callable, Iterator, List, Optional, Sequence
+from typing import Callable, Iterator, List, Optional, Sequence, Tuple
 
-from sb3_dream.zoo import ZOO_ALGOS, hyperparams_path, register
+from sb3_dream.zoo import SETTINGS, ZOO_ALGOS, hyperparams_path, register
 
 COMMANDS = ("train", "enjoy", "record_video")
 USAGE = f"""usage: sb3-dream-zoo {{{','.join(COMMANDS)}}} [rl-zoo3 flags]
@@ -35,6 +36,7 @@ USAGE = f"""usage: sb3-dream-zoo {{{','.join(COMMANDS)}}} [rl-zoo3 flags]
 rl-zoo3 with the algorithms {', '.join(ZOO_ALGOS)} and the trial envs of dream_envs.
 Examples:
   sb3-dream-zoo train --algo dream --env MetaBus-v0 -n 100000 --eval-freq 10000
+  sb3-dream-zoo train --algo dream --env MetaCook-v0 --settings measured   # the README's runs
   sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 -n 400
   sb3-dream-zoo train --algo rl2_dqn --env MetaBus-v0 --optimize --n-trials 20 -n 50000
 '<command> --help' lists the command's rl-zoo3 flags."""
@@ -73,12 +75,31 @@ def _is_trial_env(env_id: str) -> bool:
     return cls is not None and issubclass(cls, TrialEnv)
 
 
+def _pop_settings(argv: Sequence[str]) -> Tuple[Optional[str], List[str]]:
+    """This wrapper's ``--settings paper|measured`` (rl-zoo3 does not know it) and the rest of ``argv``."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--settings", default=None)
+    known, rest = parser.parse_known_args(list(argv))
+    if known.settings is not None and known.settings not in SETTINGS:
+        raise SystemExit(
+            f"sb3-dream-zoo: settings={known.settings!r} is not valid; accepted values: {', '.join(SETTINGS)}"
+        )
+    return known.settings, rest
+
+
 def train_args(argv: Sequence[str]) -> List[str]:
     """``argv`` of ``train`` with this package's defaults put first (so the user's flags win)."""
+    settings, argv = _pop_settings(argv)
     known = _known_args(argv)
+    if settings is not None and (known.algo not in ZOO_ALGOS or known.conf_file is not None):
+        raise SystemExit(
+            "sb3-dream-zoo: --settings picks the packaged --conf-file of --algo "
+            f"{' or '.join(ZOO_ALGOS)}; got --algo {known.algo}"
+            + (f" and --conf-file {known.conf_file}" if known.conf_file is not None else "")
+        )
     defaults: List[str] = []
     if known.algo in ZOO_ALGOS and known.conf_file is None:
-        defaults += ["--conf-file", str(hyperparams_path(known.algo))]
+        defaults += ["--conf-file", str(hyperparams_path(known.algo, settings or "paper"))]
     if known.eval_env_kwargs is None and _is_trial_env(known.env):
         env_kwargs = [kv for kv in (known.env_kwargs or []) if kv.split(":", 1)[0] != "split"]
         defaults += ["--eval-env-kwargs", *env_kwargs, "split:'test'"]
