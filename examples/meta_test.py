@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import zipfile
 from typing import Any
 
@@ -94,6 +95,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.trace < 0:
         parser.error(f"--trace must be a number of trials >= 0, got {args.trace}")
+    missing = [path for path in args.model if not os.path.isfile(path)]
+    if missing:
+        parser.error(f"--model: no such file: {', '.join(missing)}")
 
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, **env_kwargs)

@@ -114,6 +114,11 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
         cwd=tmp_path, capture_output=True, text=True, timeout=180,
     )  # fmt: skip
     assert refused.returncode == 2 and "--trace must be a number of trials >= 0, got -1" in refused.stderr
+    missing = subprocess.run(
+        [sys.executable, str(EXAMPLES / "meta_test.py"), "--model", str(model), "gone.zip"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert missing.returncode == 2 and "--model: no such file: gone.zip" in missing.stderr
 
     meta_test = load_example("meta_test")
     assert type(meta_test.load_model(str(model))).__name__ == "DREAM"
