@@ -13,8 +13,9 @@ envs; a flag given on the command line always wins, as the defaults are put firs
 * ``train`` with ``--algo dream|rl2_dqn``: ``--conf-file`` defaults to the packaged
   hyperparameters (:func:`sb3_dream.zoo.hyperparams_path`), as rl-zoo3 looks only inside its own
   package: the paper's, or with ``--settings measured`` (this wrapper's one flag of its own) those
-  of the README's measured runs. With a trial env and no ``--eval-env-kwargs``, the zoo's evaluation (``--eval-freq``)
-  runs on the held-out problems: the eval env gets ``--env-kwargs`` plus ``split:'test'``.
+  of the README's measured runs. With a trial env and no ``--eval-env-kwargs``, the zoo's
+  evaluation (``--eval-freq``) runs on the held-out problems: the eval env gets ``--env-kwargs``
+  plus ``split:'test'``.
 * ``enjoy`` / ``record_video``: ``--folder`` defaults to ``logs`` (where ``train`` writes) rather
   than the zoo's pretrained-agent folder, which would try to download from the Hugging Face hub;
   ``enjoy`` adds ``--no-render`` for envs without a "human" render mode (the trial envs render
