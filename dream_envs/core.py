@@ -47,7 +47,7 @@ execution returns.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, Dict, Iterator, Optional, Sequence, SupportsFloat, Tuple
+from typing import Any, Dict, Iterator, List, Optional, Sequence, SupportsFloat, Tuple
 
 import gymnasium as gym
 import numpy as np
@@ -386,6 +386,63 @@ class RandomAgent(ScriptedAgent):
         return int(self.rng.integers(self.action_space.n))
 
 
+class BatchTrialAgent(ABC):
+    """A trial agent that plays ``n_envs`` trials side by side, one batched decision per step
+    (what :func:`play_trials_batched` runs; e.g. a trained model's meta-test agent).
+
+    Like :class:`ScriptedAgent`, it sees observations and the *public* part of each ``info``.
+    """
+
+    @abstractmethod
+    def reset(self, n_envs: int) -> None:
+        """Forget everything: ``n_envs`` slots, each about to start a trial."""
+
+    @abstractmethod
+    def start_trials(self, idx: np.ndarray) -> None:
+        """A new trial starts in slots ``idx`` (their next observation is the trial's first)."""
+
+    @abstractmethod
+    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
+        """The actions [n_envs] for the stacked observations of every slot (each key [n_envs, ...])
+        and each slot's public ``info``; a slot with no trial left has an empty ``info`` and its
+        action is ignored."""
+
+
+class SingleTrialAgent(ScriptedAgent):
+    """A :class:`ScriptedAgent` that plays one trial at a time through a :class:`BatchTrialAgent`
+    of one slot (so one agent class serves both trial runners)."""
+
+    def __init__(self, agent: BatchTrialAgent) -> None:
+        self.agent = agent
+        self.reset()
+
+    def reset(self) -> None:
+        self.agent.reset(1)
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        stacked = {key: np.asarray(value)[None] for key, value in obs.items()}
+        return int(np.asarray(self.agent.act(stacked, [info])).reshape(-1)[0])
+
+
+class _TrialRecord:
+    """What :func:`play_trial` returns about one trial, filled in step by step."""
+
+    def __init__(self, info: Dict[str, Any]) -> None:
+        self.result: Dict[str, Any] = {"problem_id": info["problem_id"], "trial_return": 0.0, "exploration_actions": []}
+
+    def step(self, obs: Dict[str, Any], action: int, reward: SupportsFloat, info: Dict[str, Any]) -> None:
+        """Record ``action`` taken at ``obs`` and the ``reward`` and ``info`` that followed."""
+        if int(obs["phase"]) == EXPLORATION:
+            self.result["exploration_actions"].append(int(action))
+        self.result["trial_return"] += float(reward)
+        if info.get("episode_end") and info["episode_phase"] == EXPLORATION:
+            self.result["exploration_length"] = info["episode_length"]
+
+    def finish(self, info: Dict[str, Any]) -> Dict[str, Any]:
+        self.result["execution_returns"] = info["execution_returns"]
+        return self.result
+
+
 def play_trial(
     env: gym.Env,
     agent: ScriptedAgent,
@@ -400,18 +457,26 @@ def play_trial(
     """
     agent.reset()
     obs, info = env.reset(seed=seed, options=options)
-    result: Dict[str, Any] = {"problem_id": info["problem_id"], "trial_return": 0.0, "exploration_actions": []}
+    record = _TrialRecord(info)
     terminated = truncated = False
     while not (terminated or truncated):
         action = agent.act(obs, public_info(info))
-        if int(obs["phase"]) == EXPLORATION:
-            result["exploration_actions"].append(int(action))
-        obs, reward, terminated, truncated, info = env.step(action)
-        result["trial_return"] += float(reward)
-        if info.get("episode_end") and info["episode_phase"] == EXPLORATION:
-            result["exploration_length"] = info["episode_length"]
-    result["execution_returns"] = info["execution_returns"]
-    return result
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        record.step(obs, action, reward, info)
+        obs = next_obs
+    return record.finish(info)
+
+
+def _trial_options(k: int, problem_ids: Optional[Sequence[int]]) -> Optional[Dict[str, Any]]:
+    """``reset`` options of trial k: pinned to ``problem_ids[k % len(problem_ids)]`` if given."""
+    return None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
+
+
+def _check_trials(n_trials: int, problem_ids: Optional[Sequence[int]]) -> int:
+    n_trials = check_positive_int("n_trials", n_trials)
+    if problem_ids is not None and len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+    return n_trials
 
 
 def play_trials(
@@ -423,13 +488,65 @@ def play_trials(
 ) -> Iterator[Dict[str, Any]]:
     """:func:`play_trial` ``n_trials`` times, trial k seeded ``seed + k``; with ``problem_ids``,
     trial k is pinned to ``problem_ids[k % len(problem_ids)]``. Arguments are checked at the call."""
-    n_trials = check_positive_int("n_trials", n_trials)
-    if problem_ids is not None and len(problem_ids) == 0:
-        raise ValueError("problem_ids must not be empty")
+    n_trials = _check_trials(n_trials, problem_ids)
 
     def trials() -> Iterator[Dict[str, Any]]:
         for k in range(n_trials):
-            options = None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
-            yield play_trial(env, agent, seed=seed + k, options=options)
+            yield play_trial(env, agent, seed=seed + k, options=_trial_options(k, problem_ids))
 
     return trials()
+
+
+def play_trials_batched(
+    envs: Sequence[gym.Env],
+    agent: BatchTrialAgent,
+    n_trials: int,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+) -> List[Dict[str, Any]]:
+    """The same trials as :func:`play_trials` (trial k seeded ``seed + k``, pinned likewise), played
+    side by side in ``envs`` (copies of one trial env) by a :class:`BatchTrialAgent`: each env
+    takes the next trial as soon as its own ends. Returns :func:`play_trial`'s dicts in trial order.
+
+    With an agent that acts on each trial alone (a trained model acting greedily), every trial's
+    result is the one :func:`play_trials` gives, up to the rounding of batched matrix products.
+    """
+    n_trials = _check_trials(n_trials, problem_ids)
+    if len(envs) == 0:
+        raise ValueError("envs must not be empty")
+    n_envs = min(len(envs), n_trials)
+    agent.reset(n_envs)
+    trial = np.full(n_envs, -1)  # the trial each env plays (-1: none left)
+    records: List[Optional[_TrialRecord]] = [None] * n_envs
+    obs: List[Dict[str, Any]] = [{}] * n_envs
+    infos: List[Dict[str, Any]] = [{}] * n_envs
+    results: List[Optional[Dict[str, Any]]] = [None] * n_trials
+    next_trial = 0
+
+    def start(i: int) -> None:
+        nonlocal next_trial
+        trial[i] = next_trial
+        obs[i], info = envs[i].reset(seed=seed + next_trial, options=_trial_options(next_trial, problem_ids))
+        records[i], infos[i] = _TrialRecord(info), public_info(info)
+        next_trial += 1
+
+    for i in range(n_envs):
+        start(i)
+    while (trial >= 0).any():
+        stacked = {key: np.stack([np.asarray(o[key]) for o in obs]) for key in obs[int(np.argmax(trial >= 0))]}
+        actions = np.asarray(agent.act(stacked, infos)).reshape(n_envs)
+        restarted = []
+        for i in np.flatnonzero(trial >= 0):
+            next_obs, reward, terminated, truncated, info = envs[i].step(int(actions[i]))
+            records[i].step(obs[i], int(actions[i]), reward, info)  # type: ignore[union-attr]
+            obs[i], infos[i] = next_obs, public_info(info)
+            if terminated or truncated:
+                results[trial[i]] = records[i].finish(info)  # type: ignore[union-attr]
+                if next_trial < n_trials:
+                    start(i)
+                    restarted.append(i)
+                else:
+                    trial[i], infos[i] = -1, {}
+        if restarted:
+            agent.start_trials(np.asarray(restarted))
+    return results  # type: ignore[return-value]

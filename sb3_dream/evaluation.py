@@ -12,38 +12,60 @@ import csv
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence, Union
+from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
 
 import gymnasium as gym
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 import dream_envs
-from dream_envs import ScriptedAgent, play_trials
+from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent, play_trials, play_trials_batched
 from dream_envs.core import check_choice, check_positive_int
 
 
-class PolicyAgent(ScriptedAgent):
-    """Plays an SB3 model through ``predict(obs, state, episode_start, deterministic)`` (one env).
+class PolicyBatchAgent(BatchTrialAgent):
+    """Plays an SB3 model through ``predict(obs, state, episode_start, deterministic)`` in
+    ``n_envs`` trial envs side by side.
 
-    The recurrent state is reset at each trial's start (``episode_start=True`` on its first step)
-    and carried across the trial's inner episodes.
+    Each slot's recurrent state is reset at its trial's start (``episode_start`` set on the
+    trial's first step) and carried across the trial's inner episodes.
     """
 
     def __init__(self, model: Any, deterministic: bool = True) -> None:
         self.model, self.deterministic = model, deterministic
-        self.reset()
+        self.reset(1)
 
-    def reset(self) -> None:
+    def reset(self, n_envs: int) -> None:
         self.state: Any = None
-        self.episode_start = True
+        self.episode_start = np.ones(n_envs, dtype=bool)
 
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+    def start_trials(self, idx: np.ndarray) -> None:
+        self.episode_start[idx] = True
+
+    def observation(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> Dict[str, np.ndarray]:
+        """What ``predict`` is given (a hook: a model may read more of ``info``)."""
+        return obs
+
+    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
         action, self.state = self.model.predict(
-            obs, state=self.state, episode_start=np.array([self.episode_start]), deterministic=self.deterministic
+            self.observation(obs, infos),
+            state=self.state,
+            episode_start=self.episode_start.copy(),
+            deterministic=self.deterministic,
         )
-        self.episode_start = False
-        return int(np.asarray(action).reshape(-1)[0])
+        self.episode_start[:] = False
+        return np.asarray(action).reshape(-1)
+
+
+class PolicyAgent(SingleTrialAgent):
+    """:class:`PolicyBatchAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
+
+    def __init__(self, model: Any, deterministic: bool = True) -> None:
+        super().__init__(PolicyBatchAgent(model, deterministic))
+
+
+def _not_an_agent(agent: Any) -> TypeError:
+    return TypeError(f"agent must be a dream_envs.ScriptedAgent or a model with predict(), got {type(agent).__name__}")
 
 
 def as_trial_agent(agent: Any, deterministic: bool = True) -> ScriptedAgent:
@@ -56,9 +78,22 @@ def as_trial_agent(agent: Any, deterministic: bool = True) -> ScriptedAgent:
         return agent.as_trial_agent(deterministic=deterministic)
     if hasattr(agent, "predict"):
         return PolicyAgent(agent, deterministic=deterministic)
-    raise TypeError(
-        f"agent must be a dream_envs.ScriptedAgent or a model with predict(), got {type(agent).__name__}"
-    )
+    raise _not_an_agent(agent)
+
+
+def as_batch_trial_agent(agent: Any, deterministic: bool = True) -> Optional[BatchTrialAgent]:
+    """A :class:`~dream_envs.BatchTrialAgent` for ``agent``, or None where it plays one trial at a
+    time (a :class:`~dream_envs.ScriptedAgent`): itself if it is one, the model's own
+    ``as_batch_trial_agent(deterministic)`` if it defines one, else a :class:`PolicyBatchAgent`."""
+    if isinstance(agent, BatchTrialAgent):
+        return agent
+    if isinstance(agent, ScriptedAgent):
+        return None
+    if hasattr(agent, "as_batch_trial_agent"):
+        return agent.as_batch_trial_agent(deterministic=deterministic)
+    if hasattr(agent, "predict"):
+        return PolicyBatchAgent(agent, deterministic=deterministic)
+    raise _not_an_agent(agent)
 
 
 @dataclass
@@ -127,9 +162,28 @@ def _make_env(env: Union[str, gym.Env], split: str, n_exec_episodes: int, env_kw
     return env
 
 
+EnvArgument = Union[str, gym.Env, Sequence[gym.Env]]
+
+
+def _make_envs(
+    env: EnvArgument, split: str, n_exec_episodes: int, env_kwargs: Optional[dict], n_envs: int
+) -> Tuple[List[gym.Env], List[gym.Env]]:
+    """The trial envs to play in and those of them made here (the caller closes them): an ID is
+    made ``n_envs`` times, a list of envs or a single env is used as given (an env's wrappers
+    cannot be copied faithfully: pass a list to play trials side by side in it)."""
+    if isinstance(env, str):
+        envs = [_make_env(env, split, n_exec_episodes, env_kwargs) for _ in range(n_envs)]
+        return envs, list(envs)
+    if isinstance(env, (list, tuple)):
+        if len(env) == 0:
+            raise ValueError("env must not be an empty list of envs")
+        return [_make_env(e, split, n_exec_episodes, None) for e in env], []
+    return [_make_env(env, split, n_exec_episodes, None)], []
+
+
 def evaluate_meta(
     agent: Any,
-    env: Union[str, gym.Env],
+    env: EnvArgument,
     n_trials: int = 100,
     split: str = "test",
     n_exec_episodes: int = 1,
@@ -137,28 +191,40 @@ def evaluate_meta(
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
     env_kwargs: Optional[Dict[str, Any]] = None,
+    n_envs: int = 16,
 ) -> MetaEvalResult:
     """Run ``n_trials`` meta-test trials of ``agent`` on ``split`` and collect execution returns.
 
     :param agent: a :class:`dream_envs.ScriptedAgent` or a model with ``predict`` (RL2DQN, DREAM).
-    :param env: an env ID (made with ``split``, ``n_exec_episodes`` and ``env_kwargs``) or a trial env
-        already made with that split and number of execution episodes.
+    :param env: an env ID (made ``n_envs`` times with ``split``, ``n_exec_episodes`` and
+        ``env_kwargs``), a trial env already made with that split and number of execution episodes,
+        or a list of such envs (trials are played side by side in at most ``n_envs`` of them).
     :param problem_ids: if given, trial k is pinned to ``problem_ids[k % len(problem_ids)]`` (for an
         exhaustive evaluation); otherwise problems are drawn from the split, reproducibly from ``seed``.
+    :param n_envs: trials played side by side, one batched forward per step, by a model (a scripted
+        agent plays one at a time). Trial k is seeded ``seed + k`` either way, so a greedy model
+        plays the same trials with any ``n_envs`` (up to the rounding of batched matrix products).
     """
     n_trials = check_positive_int("n_trials", n_trials)
     n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
-    trial_env = _make_env(env, split, n_exec_episodes, env_kwargs)  # the env checks ``split``
-    trials = play_trials(trial_env, as_trial_agent(agent, deterministic), n_trials, seed, problem_ids)
+    n_envs = check_positive_int("n_envs", n_envs)
+    batch_agent = as_batch_trial_agent(agent, deterministic) if n_envs > 1 else None
+    side_by_side = min(n_envs, n_trials) if batch_agent is not None else 1
+    envs, made = _make_envs(env, split, n_exec_episodes, env_kwargs, side_by_side)
+    envs = envs[:side_by_side]
 
     start = time.perf_counter()
+    if batch_agent is not None and len(envs) > 1:
+        trials: Iterable[Dict[str, Any]] = play_trials_batched(envs, batch_agent, n_trials, seed, problem_ids)
+    else:
+        trials = play_trials(envs[0], as_trial_agent(agent, deterministic), n_trials, seed, problem_ids)
     returns, lengths, pids = [], [], []
     for result in trials:
         returns.append(result["execution_returns"])
         lengths.append(result["exploration_length"])
         pids.append(result["problem_id"])
-    if isinstance(env, str):
-        trial_env.close()
+    for e in made:
+        e.close()
     return MetaEvalResult(
         returns=np.asarray(returns, dtype=np.float64),
         exploration_lengths=np.asarray(lengths, dtype=np.float64),
@@ -180,6 +246,8 @@ class MetaEvalCallback(BaseCallback):
 
     :param eval_freq: evaluate every this many env steps (counted over all envs), and once at the
         start and the end of training.
+    :param n_envs: copies of the eval env (when given as an ID), made once, in which trials are
+        played side by side (see :func:`evaluate_meta`).
     :param best_model_save_path: as in SB3's ``EvalCallback``: a folder where the model is saved as
         ``best_model.zip`` each time its mean execution return beats every earlier evaluation
         (``best_mean_reward``, reached at ``best_env_steps``). Training swings, so this keeps the best
@@ -189,7 +257,7 @@ class MetaEvalCallback(BaseCallback):
 
     def __init__(
         self,
-        eval_env: Union[str, gym.Env],
+        eval_env: EnvArgument,
         eval_freq: int = 10_000,
         n_trials: int = 100,
         split: str = "test",
@@ -199,13 +267,18 @@ class MetaEvalCallback(BaseCallback):
         env_kwargs: Optional[Dict[str, Any]] = None,
         csv_path: Optional[str] = None,
         best_model_save_path: Optional[str] = None,
+        n_envs: int = 16,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
         self.eval_freq = check_positive_int("eval_freq", eval_freq)
         self.n_trials = check_positive_int("n_trials", n_trials)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
-        self.eval_env = _make_env(eval_env, split, n_exec_episodes, env_kwargs)  # the env checks ``split``
+        n_envs = check_positive_int("n_envs", n_envs)
+        # made once: the trials of every evaluation are played side by side in these copies
+        n_side = min(n_envs, self.n_trials)
+        self.eval_envs, _ = _make_envs(eval_env, split, n_exec_episodes, env_kwargs, n_side)  # they check ``split``
+        self.eval_env = self.eval_envs[0]
         self.split = split
         self.deterministic, self.seed, self.csv_path = deterministic, seed, csv_path
         self.best_model_save_path = best_model_save_path
@@ -256,12 +329,13 @@ class MetaEvalCallback(BaseCallback):
         wall_clock = self._wall_clock_offset + time.perf_counter() - self._train_start
         result = evaluate_meta(
             self.model,
-            self.eval_env,
+            self.eval_envs,
             n_trials=self.n_trials,
             split=self.split,
             n_exec_episodes=self.n_exec_episodes,
             deterministic=self.deterministic,
             seed=self.seed,
+            n_envs=len(self.eval_envs),
         )
         self._last_eval_step = self.num_timesteps
         row = {

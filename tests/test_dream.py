@@ -128,7 +128,11 @@ def test_no_problem_id_reaches_the_networks_at_meta_test(bus_model):
         env = ScrambleProblemId(gym.make("MetaBus-v0", split="test"), seed)
         r = evaluate_meta(bus_model, env, n_trials=10, split="test", seed=5)
         results.append(r.returns)
-    np.testing.assert_array_equal(results[0], results[1])
+        # and side by side in several scrambled envs
+        envs = [ScrambleProblemId(gym.make("MetaBus-v0", split="test"), seed + k) for k in range(3)]
+        results.append(evaluate_meta(bus_model, envs, n_trials=10, split="test", seed=5).returns)
+    for returns in results[1:]:
+        np.testing.assert_array_equal(results[0], returns)
     # and predict() gives the same actions whatever the problem, given the same observations
     env = gym.make("MetaBus-v0")
     obs, _ = env.reset(seed=0, options={"problem_id": 0})
@@ -136,6 +140,11 @@ def test_no_problem_id_reaches_the_networks_at_meta_test(bus_model):
     obs2, _ = env.reset(seed=0, options={"problem_id": 11})
     a2, _ = bus_model.predict(obs2, deterministic=True)
     assert a1 == a2
+
+
+def test_trials_side_by_side_are_the_trials_played_one_at_a_time(bus_model, played_side_by_side):
+    actions = played_side_by_side(bus_model, "MetaBus-v0", n_trials=13, n_envs=4)
+    assert len({tuple(a) for a in actions.values()}) > 1  # the trials differ
 
 
 def test_predict_state_follows_the_recurrent_convention(bus_model):

@@ -70,6 +70,45 @@ def test_oracle_beats_random(env_id):
     env.close()
 
 
+class OraclePerEnv(dream_envs.BatchTrialAgent):
+    """A batch agent that runs one oracle per env (checks the side-by-side runner on its own)."""
+
+    def __init__(self, env_id):
+        self.env_id, self.oracles = env_id, []
+
+    def reset(self, n_envs):
+        self.oracles = [dream_envs.make_oracle(gym.make(self.env_id)) for _ in range(n_envs)]
+        self.idle_infos = 0
+
+    def start_trials(self, idx):
+        for i in idx:
+            self.oracles[i].reset()
+
+    def act(self, obs, infos):
+        actions = np.zeros(len(infos), dtype=np.int64)
+        for i, info in enumerate(infos):
+            if not info:  # an env with no trial left
+                self.idle_infos += 1
+                continue
+            actions[i] = self.oracles[i].act({k: v[i] for k, v in obs.items()}, info)
+        return actions
+
+
+@pytest.mark.parametrize("env_id", ["MetaBus-v0", "MetaCook-v0", "MetaBandit-v0"])
+def test_trials_side_by_side_are_the_trials_played_one_at_a_time(env_id):
+    env = gym.make(env_id, split="test")
+    one = list(dream_envs.play_trials(env, dream_envs.make_oracle(env), 7, seed=4, problem_ids=[3, 5]))
+    agent = OraclePerEnv(env_id)
+    side = dream_envs.play_trials_batched([gym.make(env_id, split="test") for _ in range(3)], agent, 7, 4, [3, 5])
+    assert side == one and [r["problem_id"] for r in side] == [3, 5] * 3 + [3]
+    assert agent.idle_infos > 0  # the last trial ran with the other envs idle
+    assert len(dream_envs.play_trials_batched([env] * 2, OraclePerEnv(env_id), 1)) == 1  # more envs than trials
+    with pytest.raises(ValueError, match="envs must not be empty"):
+        dream_envs.play_trials_batched([], agent, 2)
+    with pytest.raises(ValueError, match="n_trials"):
+        dream_envs.play_trials_batched([env], agent, 0)
+
+
 @pytest.mark.parametrize("vec_env_cls", [DummyVecEnv, SubprocVecEnv])
 def test_vectorised_auto_reset_draws_new_problems(env_id, vec_env_cls):
     n_envs = 2 if env_id == "SignNav3D-v0" else 8

@@ -11,15 +11,17 @@ from sb3_dream.evaluation import MetaEvalResult, PolicyAgent, as_trial_agent, ev
 
 
 class FirstActionModel:
-    """A model whose predict plays the bandit's a_* in exploration, then action 1; records its calls."""
+    """A model whose predict plays the bandit's a_* in exploration, then action 1; records its calls
+    (each env's ``episode_start`` and the state it was given: the step within the trial)."""
 
     def __init__(self):
         self.calls = []
 
     def predict(self, obs, state=None, episode_start=None, deterministic=False):
-        self.calls.append((bool(episode_start[0]), state))
-        step = 0 if state is None else state + 1
-        return np.array([1 if obs["phase"] == 1 else 0]), step
+        starts = np.asarray(episode_start, dtype=bool)
+        self.calls.append((starts.tolist(), None if state is None else state.tolist()))
+        step = np.zeros(len(starts), int) if state is None else np.where(starts, 0, state + 1)
+        return (np.asarray(obs["phase"]).reshape(len(starts)) == 1).astype(int), step
 
 
 def test_oracle_is_optimal_and_random_is_chance_on_the_bandit():
@@ -38,12 +40,26 @@ def test_oracle_is_optimal_and_random_is_chance_on_the_bandit():
 
 def test_policy_agent_carries_state_within_a_trial_and_resets_between():
     model = FirstActionModel()
-    result = evaluate_meta(model, "MetaBandit-v0", n_trials=4, n_exec_episodes=2, env_kwargs={"n_actions": 2})
-    starts = [s for s, _ in model.calls]
-    assert len(model.calls) == 4 * 3 and starts == [True, False, False] * 4
-    assert [st for _, st in model.calls[:3]] == [None, 0, 1]
+    kwargs = {"n_actions": 2}
+    result = evaluate_meta(model, "MetaBandit-v0", n_trials=4, n_exec_episodes=2, env_kwargs=kwargs, n_envs=1)
+    assert model.calls == [([True], None), ([False], [0]), ([False], [1])] * 4
     # action 1 is right exactly in problem 1
     np.testing.assert_array_equal(result.returns[:, 0], (result.problem_ids == 1).astype(float))
+
+
+def test_trials_side_by_side_reset_each_env_state_at_its_own_trial_start():
+    model = FirstActionModel()
+    kwargs = {"n_actions": 2}
+    result = evaluate_meta(model, "MetaBandit-v0", n_trials=5, n_exec_episodes=2, env_kwargs=kwargs, n_envs=2)
+    # trials 0-1, then 2-3, then 4 in the first env, the second idle (its action ignored)
+    starts = [[True, True], [False, False], [False, False]] * 2 + [[True, False], [False, False], [False, False]]
+    assert [s for s, _ in model.calls] == starts
+    # the state given: each trial's step counter, reset in an env where its next trial starts
+    assert [state for _, state in model.calls[2:5]] == [[1, 1], [2, 2], [0, 0]]
+    assert [state for _, state in model.calls[5:8]] == [[1, 1], [2, 2], [0, 3]]
+    np.testing.assert_array_equal(result.returns[:, 0], (result.problem_ids == 1).astype(float))
+    one_by_one = evaluate_meta(FirstActionModel(), "MetaBandit-v0", 5, n_exec_episodes=2, env_kwargs=kwargs, n_envs=1)
+    np.testing.assert_array_equal(result.problem_ids, one_by_one.problem_ids)
 
 
 def test_pinned_problem_ids_cycle():
@@ -77,3 +93,9 @@ def test_bad_input():
         evaluate_meta(FirstActionModel(), gym.make("MetaBandit-v0"), split="test_problems")
     assert evaluate_meta(FirstActionModel(), "MetaCook-v0", n_trials=2, split="test_problems").n_trials == 2
     assert isinstance(as_trial_agent(FirstActionModel()), PolicyAgent)
+    with pytest.raises(ValueError, match="n_envs"):
+        evaluate_meta(FirstActionModel(), "MetaBandit-v0", n_envs=0)
+    with pytest.raises(ValueError, match="env must not be an empty list"):
+        evaluate_meta(FirstActionModel(), [])
+    with pytest.raises(ValueError, match="split"):
+        evaluate_meta(FirstActionModel(), [gym.make("MetaBandit-v0", split="train")] * 2, split="test")

@@ -452,6 +452,17 @@ def test_final_obs_is_consumed_when_asked():
     assert len(result["execution_returns"]) == 1
 
 
+@pytest.mark.parametrize("consume_final_obs", [False, True])
+def test_trials_side_by_side_are_the_trials_played_one_at_a_time(consume_final_obs, played_side_by_side):
+    model = small_model(gym.make("MetaBus-v0"), consume_final_obs=consume_final_obs)
+    generator = th.Generator().manual_seed(0)
+    with th.no_grad():  # weights that make the actions depend on the observations (a fresh model's do not)
+        for p in model.policy.parameters():
+            p.copy_(th.randn(p.shape, generator=generator))
+    actions = played_side_by_side(model, "MetaBus-v0", n_trials=11, n_envs=4)
+    assert len({tuple(a) for a in actions.values()}) > 1  # the trials differ
+
+
 def test_zero_exploration_rewards():
     env = gym.make("MetaBandit-v0", n_actions=2, horizon=1, reward_free_exploration=False)
     model = small_model(env, zero_exploration_rewards=True, learning_starts=1000)

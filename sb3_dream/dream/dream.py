@@ -31,7 +31,7 @@ import pathlib
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
+from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
 
 import numpy as np
 import torch as th
@@ -45,7 +45,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Rollout
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
-from dream_envs import EXECUTION, EXPLORATION, ScriptedAgent
+from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent
 from dream_envs.core import check_choice
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
@@ -531,6 +531,28 @@ class DREAM(TrialOffPolicyAlgorithm):
         """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
         return DreamTrialAgent(self, deterministic)
 
+    def as_batch_trial_agent(self, deterministic: bool = True) -> BatchTrialAgent:
+        """:meth:`as_trial_agent` for trials played side by side (see :mod:`sb3_dream.evaluation`)."""
+        return DreamBatchTrialAgent(self, deterministic)
+
+    def _meta_test_act(
+        self, state: TrialState, observation: Dict[str, Any], infos: Sequence[Dict[str, Any]], deterministic: bool
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """The actions of the envs in ``state`` at meta-test, and the envs whose exploration episode
+        ``infos`` say just ended: their z is set first, g of the whole trajectory with
+        ``info["final_obs"]`` as its last state."""
+        self.policy.set_training_mode(False)
+        obs, _ = self._batch_observation(observation)
+        explored = np.array(
+            [k for k, info in enumerate(infos) if info.get("episode_end") and info.get("episode_phase") == EXPLORATION],
+            dtype=np.int64,
+        )
+        if len(explored):
+            final_obs = np.stack([np.asarray(infos[k]["final_obs"]) for k in explored])
+            self.end_exploration(state, explored, final_obs)
+        eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
+        return self._act(obs, state, *eps), explored
+
     # ------------------------------------------------------------------ collecting
     def _setup_learn(
         self,
@@ -839,8 +861,26 @@ class DREAM(TrialOffPolicyAlgorithm):
         super().dump_logs()
 
 
+class DreamBatchTrialAgent(BatchTrialAgent):
+    """DREAM at meta-test in ``n_envs`` trial envs side by side, given ``info["final_obs"]`` at
+    each exploration's end (what :func:`sb3_dream.evaluation.evaluate_meta` plays)."""
+
+    def __init__(self, model: DREAM, deterministic: bool = True) -> None:
+        self.model, self.deterministic = model, deterministic
+        self.reset(1)
+
+    def reset(self, n_envs: int) -> None:
+        self.state = self.model.new_trial_state(n_envs)
+
+    def start_trials(self, idx: np.ndarray) -> None:
+        self.state.reset(idx)
+
+    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
+        return self.model._meta_test_act(self.state, obs, infos, self.deterministic)[0]
+
+
 class DreamTrialAgent(ScriptedAgent):
-    """DREAM at meta-test on one trial env, given ``info["final_obs"]`` at the exploration's end."""
+    """DREAM at meta-test on one trial env, one trial at a time (see :class:`DreamBatchTrialAgent`)."""
 
     def __init__(self, model: DREAM, deterministic: bool = True) -> None:
         self.model, self.deterministic = model, deterministic
@@ -854,11 +894,7 @@ class DreamTrialAgent(ScriptedAgent):
         (a hook for :func:`sb3_dream.dream.diagnostics.diagnose`)."""
 
     def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
-        model = self.model
-        model.policy.set_training_mode(False)
-        batch, _ = model._batch_observation(obs)
-        if info.get("episode_end") and info.get("episode_phase") == EXPLORATION:
-            model.end_exploration(self.state, np.array([0]), np.asarray(info["final_obs"])[None])
+        actions, explored = self.model._meta_test_act(self.state, obs, [info], self.deterministic)
+        if len(explored):
             self._explored()
-        eps = (0.0, 0.0) if self.deterministic else (model.exploration_epsilon, model.execution_epsilon)
-        return int(model._act(batch, self.state, *eps)[0])
+        return int(actions[0])

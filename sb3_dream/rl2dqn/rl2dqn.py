@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
+from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
 
 import gymnasium as gym
 import numpy as np
@@ -22,11 +22,12 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve in gym.make)
-from dream_envs.core import ScriptedAgent
+from dream_envs.core import BatchTrialAgent, ScriptedAgent, SingleTrialAgent
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
 from sb3_dream.common.wrappers import FinalObsWrapper, final_obs_entry
+from sb3_dream.evaluation import PolicyBatchAgent
 from sb3_dream.rl2dqn.policies import CnnLstmPolicy, MultiInputLstmPolicy, RL2DQNPolicy, RL2QNetwork
 
 SelfRL2DQN = TypeVar("SelfRL2DQN", bound="RL2DQN")
@@ -324,6 +325,10 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         ``final_obs`` key from ``info`` (used by :func:`sb3_dream.evaluation.evaluate_meta`)."""
         return RL2TrialAgent(self, deterministic)
 
+    def as_batch_trial_agent(self, deterministic: bool = True) -> BatchTrialAgent:
+        """:meth:`as_trial_agent` for trials played side by side (see :mod:`sb3_dream.evaluation`)."""
+        return RL2BatchTrialAgent(self, deterministic)
+
     def _sample_action(
         self, learning_starts: int, action_noise: Any = None, n_envs: int = 1
     ) -> Tuple[np.ndarray, np.ndarray]:
@@ -432,28 +437,24 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         self.logger.record("train/q_mean", float(stats[1]))
 
 
-class RL2TrialAgent(ScriptedAgent):
-    """Plays an :class:`RL2DQN` on a bare trial env through ``predict``, one trial at a time.
+class RL2BatchTrialAgent(PolicyBatchAgent):
+    """Plays an :class:`RL2DQN` on bare trial envs through ``predict``, trials side by side.
 
-    The LSTM state is reset at the trial's first step only. If the model consumes ``final_obs``,
-    the key is built from the ``info`` that comes with each observation, as
+    Each slot's LSTM state is reset at its trial's first step only. If the model consumes
+    ``final_obs``, the key is built from the ``info`` that comes with each observation, as
     :class:`~sb3_dream.common.wrappers.FinalObsWrapper` would.
     """
 
-    def __init__(self, model: RL2DQN, deterministic: bool = True) -> None:
-        self.model, self.deterministic = model, deterministic
-        self.reset()
-
-    def reset(self) -> None:
-        self.state: Optional[Tuple[np.ndarray, np.ndarray]] = None
-        self.episode_start = True
-
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+    def observation(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> Dict[str, np.ndarray]:
         space = self.model.observation_space
-        if "final_obs" in space.spaces and "final_obs" not in obs:  # type: ignore[attr-defined]
-            obs = {**obs, "final_obs": final_obs_entry(space["obs"], info)}  # type: ignore[index]
-        action, self.state = self.model.predict(
-            obs, state=self.state, episode_start=np.array([self.episode_start]), deterministic=self.deterministic
-        )
-        self.episode_start = False
-        return int(np.asarray(action).reshape(-1)[0])
+        if "final_obs" in space.spaces and "final_obs" not in obs:
+            entries = [final_obs_entry(space["obs"], info) for info in infos]
+            obs = {**obs, "final_obs": np.stack(entries)}
+        return obs
+
+
+class RL2TrialAgent(SingleTrialAgent):
+    """:class:`RL2BatchTrialAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
+
+    def __init__(self, model: RL2DQN, deterministic: bool = True) -> None:
+        super().__init__(RL2BatchTrialAgent(model, deterministic))
