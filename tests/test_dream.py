@@ -9,7 +9,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
-from sb3_dream import DREAM
+from sb3_dream import DREAM, MetaEvalCallback
 from sb3_dream.dream.policies import DreamPolicy, TrajectoryDecoder
 from sb3_dream.evaluation import evaluate_meta
 
@@ -145,6 +145,19 @@ def test_no_problem_id_reaches_the_networks_at_meta_test(bus_model):
 def test_trials_side_by_side_are_the_trials_played_one_at_a_time(bus_model, played_side_by_side):
     actions = played_side_by_side(bus_model, "MetaBus-v0", n_trials=13, n_envs=4)
     assert len({tuple(a) for a in actions.values()}) > 1  # the trials differ
+
+
+def test_a_seed_reproduces_training_and_evaluating_on_the_way_changes_nothing():
+    def trained(callback):
+        model = DREAM("MetaBus-v0", seed=0, **FAST)
+        model.learn(800, callback=callback)
+        assert model._n_updates > 50
+        return th.cat([p.detach().flatten() for p in model.policy.parameters()])
+
+    alone = trained(None)
+    assert th.equal(alone, trained(None))
+    # meta-test evaluations in between, trials side by side, draw from no generator training uses
+    assert th.equal(alone, trained(MetaEvalCallback("MetaBus-v0", eval_freq=300, n_trials=20, n_envs=8)))
 
 
 def test_predict_state_follows_the_recurrent_convention(bus_model):
