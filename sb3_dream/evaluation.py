@@ -65,15 +65,21 @@ class PolicyAgent(SingleTrialAgent):
 
 
 def _not_an_agent(agent: Any) -> TypeError:
-    return TypeError(f"agent must be a dream_envs.ScriptedAgent or a model with predict(), got {type(agent).__name__}")
+    return TypeError(
+        "agent must be a dream_envs.ScriptedAgent, a dream_envs.BatchTrialAgent or a model with predict(), "
+        f"got {type(agent).__name__}"
+    )
 
 
 def as_trial_agent(agent: Any, deterministic: bool = True) -> ScriptedAgent:
-    """A :class:`~dream_envs.ScriptedAgent` for ``agent``: itself if it is one, the model's own
+    """A :class:`~dream_envs.ScriptedAgent` for ``agent``: itself if it is one, a
+    :class:`~dream_envs.BatchTrialAgent` playing one trial at a time, the model's own
     ``as_trial_agent(deterministic)`` if it defines one (a model that uses ``info["final_obs"]``),
     else a :class:`PolicyAgent` around ``predict``."""
     if isinstance(agent, ScriptedAgent):
         return agent
+    if isinstance(agent, BatchTrialAgent):
+        return SingleTrialAgent(agent)
     if hasattr(agent, "as_trial_agent"):
         return agent.as_trial_agent(deterministic=deterministic)
     if hasattr(agent, "predict"):
@@ -195,7 +201,8 @@ def evaluate_meta(
 ) -> MetaEvalResult:
     """Run ``n_trials`` meta-test trials of ``agent`` on ``split`` and collect execution returns.
 
-    :param agent: a :class:`dream_envs.ScriptedAgent` or a model with ``predict`` (RL2DQN, DREAM).
+    :param agent: a :class:`dream_envs.ScriptedAgent`, a :class:`dream_envs.BatchTrialAgent` or a model
+        with ``predict`` (RL2DQN, DREAM).
     :param env: an env ID (made ``n_envs`` times with ``split``, ``n_exec_episodes`` and
         ``env_kwargs``), a trial env already made with that split and number of execution episodes,
         or a list of such envs (trials are played side by side in at most ``n_envs`` of them).

@@ -7,7 +7,7 @@ import pytest
 
 import dream_envs
 from dream_envs import RandomAgent
-from sb3_dream.evaluation import MetaEvalResult, PolicyAgent, as_trial_agent, evaluate_meta
+from sb3_dream.evaluation import MetaEvalResult, PolicyAgent, PolicyBatchAgent, as_trial_agent, evaluate_meta
 
 
 class FirstActionModel:
@@ -60,6 +60,11 @@ def test_trials_side_by_side_reset_each_env_state_at_its_own_trial_start():
     np.testing.assert_array_equal(result.returns[:, 0], (result.problem_ids == 1).astype(float))
     one_by_one = evaluate_meta(FirstActionModel(), "MetaBandit-v0", 5, n_exec_episodes=2, env_kwargs=kwargs, n_envs=1)
     np.testing.assert_array_equal(result.problem_ids, one_by_one.problem_ids)
+    # a batch agent given as such plays one trial at a time in a single env
+    batch_agent = PolicyBatchAgent(FirstActionModel())
+    alone = evaluate_meta(batch_agent, "MetaBandit-v0", 5, n_exec_episodes=2, env_kwargs=kwargs, n_envs=1)
+    np.testing.assert_array_equal(result.returns, alone.returns)
+    assert batch_agent.model.calls[0] == ([True], None)
 
 
 def test_pinned_problem_ids_cycle():
