@@ -7,7 +7,14 @@ import pytest
 
 import dream_envs
 from dream_envs import RandomAgent
-from sb3_dream.evaluation import MetaEvalResult, PolicyAgent, PolicyBatchAgent, as_trial_agent, evaluate_meta
+from sb3_dream.evaluation import (
+    MetaEvalCallback,
+    MetaEvalResult,
+    PolicyAgent,
+    PolicyBatchAgent,
+    as_trial_agent,
+    evaluate_meta,
+)
 
 
 class FirstActionModel:
@@ -100,6 +107,8 @@ def test_bad_input():
     assert isinstance(as_trial_agent(FirstActionModel()), PolicyAgent)
     with pytest.raises(ValueError, match="n_envs"):
         evaluate_meta(FirstActionModel(), "MetaBandit-v0", n_envs=0)
+    with pytest.raises(ValueError, match="n_envs"):
+        MetaEvalCallback("MetaBandit-v0", n_envs=0)
     with pytest.raises(ValueError, match="env must not be an empty list"):
         evaluate_meta(FirstActionModel(), [])
     with pytest.raises(ValueError, match="split"):
