@@ -240,6 +240,7 @@ def evaluate_meta(
     )
 
 
+BEST_TIES = ("first", "last")
 CURVE_COLUMNS = ("env_steps", "wall_clock_s", "mean", "ci", "exploration_length")
 
 
@@ -260,6 +261,10 @@ class MetaEvalCallback(BaseCallback):
         (``best_mean_reward``, reached at ``best_env_steps``). Training swings, so this keeps the best
         model seen; select it on a split the agent trains on (``split="train"``), so that its
         held-out return stays an honest estimate.
+    :param best_ties: which of several evaluations with the same best return keeps the model:
+        ``"first"`` (SB3's ``EvalCallback``: a later one must beat it) or ``"last"`` (the latest of
+        them). On a split the agent saturates (MetaCook's training split at the oracle's return from
+        about 730K env steps) the first is an early model; the latest has trained longest.
     """
 
     def __init__(
@@ -275,9 +280,14 @@ class MetaEvalCallback(BaseCallback):
         csv_path: Optional[str] = None,
         best_model_save_path: Optional[str] = None,
         n_envs: int = 16,
+        best_ties: str = "first",
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
+        if best_ties not in BEST_TIES:
+            accepted = ", ".join(map(repr, BEST_TIES))
+            raise ValueError(f"best_ties={best_ties!r} is not valid; accepted values: {accepted}")
+        self.best_ties = best_ties
         self.eval_freq = check_positive_int("eval_freq", eval_freq)
         self.n_trials = check_positive_int("n_trials", n_trials)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
@@ -304,14 +314,19 @@ class MetaEvalCallback(BaseCallback):
         if self.results:
             self._last_eval_step = int(self.results[-1]["env_steps"])
             self._wall_clock_offset = float(self.results[-1]["wall_clock_s"])
-            best = max(self.results, key=lambda row: float(row["mean"]))
-            self.best_mean_reward, self.best_env_steps = float(best["mean"]), int(best["env_steps"])
+            for row in self.results:
+                if self._is_best(float(row["mean"])):
+                    self.best_mean_reward, self.best_env_steps = float(row["mean"]), int(row["env_steps"])
         if self.csv_path:
             os.makedirs(os.path.dirname(os.path.abspath(self.csv_path)), exist_ok=True)
             with open(self.csv_path, "w", newline="") as f:
                 writer = csv.writer(f)
                 writer.writerow(CURVE_COLUMNS)
                 writer.writerows([row[k] for k in CURVE_COLUMNS] for row in self.results)
+
+    def _is_best(self, mean: float) -> bool:
+        """Whether an evaluation's mean return takes the best model's place (see ``best_ties``)."""
+        return mean > self.best_mean_reward or (self.best_ties == "last" and mean == self.best_mean_reward)
 
     def _on_training_start(self) -> None:
         self._train_start = time.perf_counter()
@@ -360,7 +375,7 @@ class MetaEvalCallback(BaseCallback):
             for j, m in enumerate(result.per_episode_mean, start=1):
                 self.logger.record(f"eval/execution_return_ep{j}", float(m))
         self.logger.dump(self.num_timesteps)
-        if result.mean > self.best_mean_reward:
+        if self._is_best(result.mean):
             self.best_mean_reward, self.best_env_steps = float(result.mean), int(self.num_timesteps)
             if self.best_model_save_path is not None:
                 os.makedirs(self.best_model_save_path, exist_ok=True)

@@ -43,9 +43,10 @@ its own checkpoints.
                                       replay buffers), to meta-test how a policy changes
     <env>/best/<algo>_seed<k>/best_model.zip
                                       with --select-on SPLIT: the model at the evaluation on SPLIT
-                                      with the highest return so far (MetaEvalCallback's
-                                      best_model_save_path); the run's JSON records its steps and
-                                      its return on the held-out split ("best")
+                                      with the highest return so far, the latest of equal ones
+                                      (--select-ties; MetaEvalCallback's best_model_save_path); the
+                                      run's JSON records its steps and its return on the held-out
+                                      split ("best")
     summary.csv, summary.md           final return mean +- std over seeds, the mean over each run's
                                       last tenth of env steps, env steps, wall-clock
     curves.png                        return vs env steps, mean +- std over seeds, a panel per env
@@ -94,7 +95,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from dream_envs import all_splits, env_splits
-from sb3_dream.evaluation import CURVE_COLUMNS
+from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS
 
 ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
 PRESET_NAMES = ("paper", "fast")
@@ -192,6 +193,7 @@ class RunConfig:
     checkpoint_freq: int = 0
     snapshot_freq: int = 0
     select_on: str = ""
+    select_ties: str = "last"
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
     init_from: str = ""
@@ -219,13 +221,17 @@ class RunConfig:
                 f"select_on={self.select_on!r} is not valid; accepted values: the evaluated splits "
                 f"{', '.join(map(repr, self.eval_splits))} (add it to eval_splits), or '' (off)"
             )
+        if self.select_ties not in BEST_TIES:
+            accepted = ", ".join(map(repr, BEST_TIES))
+            raise ValueError(f"select_ties={self.select_ties!r} is not valid; accepted values: {accepted}")
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq", "select_on")
+        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq")
+        unrecorded += ("select_on", "select_ties")  # which model is kept, not how it trains
         for key in (*unrecorded, "dream_kwargs", "rl2dqn_kwargs"):
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
@@ -547,6 +553,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
             split=split,
             csv_path=str(partial[split]),
             best_model_save_path=str(run.best_folder(out)) if split == config.select_on else None,
+            best_ties=config.select_ties,
             **_meta_test_kwargs(run, config),
         )
         for split in config.eval_splits
@@ -646,6 +653,7 @@ def _meta_test_best(run: Run, config: RunConfig, best: Any, tag: str) -> Dict[st
     )
     return {
         "selected_on": best.split,
+        "ties": best.best_ties,
         "env_steps": best.best_env_steps,
         "mean_on_selection_split": best.best_mean_reward,
         "test": {"mean": result.mean, "ci": result.ci, "exploration_length": result.mean_exploration_length},
@@ -1000,6 +1008,13 @@ def build_parser() -> argparse.ArgumentParser:
         "choice) under <env>/best/ and meta-test it on the held-out split at the end",
     )
     parser.add_argument(
+        "--select-ties",
+        default="last",
+        choices=BEST_TIES,
+        help="which of several evaluations at the same best return --select-on keeps (default last: on a "
+        "saturated split, e.g. MetaCook's training split at the oracle, the first is an early model)",
+    )
+    parser.add_argument(
         "--init-from",
         default="",
         metavar="DIR",
@@ -1035,6 +1050,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             checkpoint_freq=args.checkpoint_freq,
             snapshot_freq=args.snapshot_freq,
             select_on=args.select_on,
+            select_ties=args.select_ties,
             dream_kwargs=tuple(sorted(parse_kwargs(args.dream_kwargs, "--dream-kwargs").items())),
             rl2dqn_kwargs=tuple(sorted(parse_kwargs(args.rl2dqn_kwargs, "--rl2dqn-kwargs").items())),
             init_from=args.init_from,

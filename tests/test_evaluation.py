@@ -109,7 +109,20 @@ def test_bad_input():
         evaluate_meta(FirstActionModel(), "MetaBandit-v0", n_envs=0)
     with pytest.raises(ValueError, match="n_envs"):
         MetaEvalCallback("MetaBandit-v0", n_envs=0)
+    with pytest.raises(ValueError, match="best_ties='latest' is not valid; accepted values: 'first', 'last'"):
+        MetaEvalCallback("MetaBandit-v0", best_ties="latest")
     with pytest.raises(ValueError, match="env must not be an empty list"):
         evaluate_meta(FirstActionModel(), [])
     with pytest.raises(ValueError, match="split"):
         evaluate_meta(FirstActionModel(), [gym.make("MetaBandit-v0", split="train")] * 2, split="test")
+
+
+@pytest.mark.parametrize("ties, expected", [("first", 100), ("last", 300)])
+def test_best_ties_choose_among_equal_best_evaluations(ties, expected):
+    """A learning curve that reaches its best twice: SB3's rule keeps the first, ``last`` the latest."""
+    callback = MetaEvalCallback("MetaBandit-v0", n_trials=2, n_envs=1, best_ties=ties)
+    curve = [(0, -1.0), (100, 0.5), (200, 0.2), (300, 0.5), (400, 0.4)]
+    callback.resume([{"env_steps": k, "wall_clock_s": 0.0, "mean": m, "ci": 0.0, "exploration_length": 1.0}
+                     for k, m in curve])  # fmt: skip
+    assert (callback.best_env_steps, callback.best_mean_reward) == (expected, 0.5)
+    assert callback._is_best(0.5) is (ties == "last") and callback._is_best(0.6) and not callback._is_best(0.4)

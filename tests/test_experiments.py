@@ -389,6 +389,28 @@ def test_select_on_keeps_the_best_model_across_an_interruption(tmp_path, monkeyp
     assert info["final"]["train"]["mean"] == pytest.approx(0.1)
 
 
+def test_select_on_keeps_the_latest_of_equal_best_evaluations(tmp_path, monkeypatch):
+    """The training split saturates (as MetaCook's does at the oracle): the latest model at the best
+    return is kept by default, the first with ``select_ties="first"``."""
+    train = {0: -1.0, 100: 0.5, 200: 0.2, 300: 0.5, 400: 0.1}
+    means = {("train", k): v for k, v in train.items()}
+    means.update({("test", k): k / 1000 for k in train})  # the held-out return of each model
+    _scripted_evaluations(monkeypatch, means)
+    run = Run("dream", EnvSpec.parse("MetaBus-v0:variant=map"), 0)
+    for ties, expected in (("last", 300), ("first", 100)):
+        config = RunConfig(
+            steps=400, eval_freq=100, eval_trials=2, eval_splits=("test", "train"), select_on="train",
+            select_ties=ties, dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+        )  # fmt: skip
+        experiments.run_one(run, config, tmp_path / ties)
+        best = json.loads(run.info_path(tmp_path / ties).read_text())["best"]
+        assert (best["ties"], best["env_steps"]) == (ties, expected)
+        assert best["test"]["mean"] == pytest.approx(expected / 1000)  # that model, meta-tested again
+    assert RunConfig().select_ties == "last" and experiments.build_parser().parse_args([]).select_ties == "last"
+    with pytest.raises(ValueError, match="select_ties='middle' is not valid; accepted values: 'first', 'last'"):
+        RunConfig(select_ties="middle")
+
+
 def test_select_on_must_be_an_evaluated_split():
     with pytest.raises(ValueError, match="select_on='train' is not valid; accepted values: the evaluated splits"):
         RunConfig(select_on="train")
