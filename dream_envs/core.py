@@ -399,7 +399,11 @@ class BatchTrialAgent(ABC):
 
     @abstractmethod
     def start_trials(self, idx: np.ndarray) -> None:
-        """A new trial starts in slots ``idx`` (their next observation is the trial's first)."""
+        """A new trial starts in slots ``idx`` (their next observation is the trial's first).
+
+        :func:`play_trials_batched` gives slots 0..n_envs-1 its first trials at :meth:`reset`, then
+        each slot in ``idx`` the next trial in that order (an agent handed the trials' problems, such
+        as a diagnostic one, can count them)."""
 
     @abstractmethod
     def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:

@@ -478,6 +478,21 @@ def test_f_variance_by_feature_splits_an_additive_code_between_its_parts():
     assert f_variance_by_feature(a[features[:, 0]], features)[1] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_diagnose_side_by_side_is_diagnose_one_trial_at_a_time(bus_model):
+    """The privileged agents number the trials as the side-by-side runner starts them: the same
+    code f(T) per trial, so every number matches (z = g, f(T), noisy f(T), the oracle's exploration)."""
+    from sb3_dream.dream import diagnose
+
+    ids = [3, 40, 3, 100, 7]
+    one = diagnose(bus_model, "MetaBus-v0", n_trials=7, seed=7, problem_ids=ids, n_envs=1)
+    side = diagnose(bus_model, "MetaBus-v0", n_trials=7, seed=7, problem_ids=ids, n_envs=3)
+    assert one.return_f_noisy is not None and one.return_g_optimal_exploration is not None
+    for key, value in one.as_dict().items():
+        assert side.as_dict()[key] == pytest.approx(value, rel=1e-5, abs=1e-6), key
+    with pytest.raises(ValueError, match="n_envs"):
+        diagnose(bus_model, "MetaBus-v0", n_trials=2, n_envs=0)
+
+
 def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):
     from sb3_dream.dream import diagnose
 

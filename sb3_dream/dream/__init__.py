@@ -1,6 +1,7 @@
 from sb3_dream.dream.diagnostics import (
     DreamDiagnosis,
     PrivilegedAgent,
+    PrivilegedBatchAgent,
     diagnose,
     f_variance_by_feature,
     trial_problem_ids,
@@ -13,6 +14,7 @@ __all__ = [
     "DreamDiagnosis",
     "DreamPolicy",
     "PrivilegedAgent",
+    "PrivilegedBatchAgent",
     "diagnose",
     "f_variance_by_feature",
     "trial_problem_ids",

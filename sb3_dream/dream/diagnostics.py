@@ -42,9 +42,9 @@ import numpy as np
 import torch as th
 
 from dream_envs import make_oracle
-from dream_envs.core import EXPLORATION, ScriptedAgent, check_choice, check_positive_int
-from sb3_dream.dream.dream import DREAM, DreamTrialAgent
-from sb3_dream.evaluation import _make_env, evaluate_meta
+from dream_envs.core import EXPLORATION, ScriptedAgent, SingleTrialAgent, check_choice, check_positive_int
+from sb3_dream.dream.dream import DREAM, DreamBatchTrialAgent
+from sb3_dream.evaluation import _make_envs, evaluate_meta
 
 
 @dataclass
@@ -80,15 +80,79 @@ class DreamDiagnosis:
 Z_SOURCES = ("g", "f", "f_noisy")
 
 
-class PrivilegedAgent(DreamTrialAgent):
+class PrivilegedBatchAgent(DreamBatchTrialAgent):
     """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
     f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``) of trial k's problem
     ``problem_ids[k % len(problem_ids)]``: a diagnostic (it is handed the problem IDs), never a
-    meta-test agent. Play the trials in order on those problems (the trial runners' ``problem_ids=``).
+    meta-test agent. Play the trials in order on those problems (the trial runners'
+    ``problem_ids=``); trial k is the k-th trial the agent starts (counted at its first action, in
+    the order :func:`~dream_envs.play_trials_batched` starts them), from its construction on.
 
-    With ``explorer`` (a scripted agent, e.g. the env's oracle) that agent takes the exploration
-    actions instead of the exploration policy, and the decoder reads its trajectory.
+    With ``explorers`` (scripted agents, e.g. the env's oracle, one per slot) they take the
+    exploration actions instead of the exploration policy, and the decoder reads their trajectory.
     """
+
+    def __init__(
+        self,
+        model: DREAM,
+        problem_ids: Sequence[int],
+        z_source: str = "f",
+        seed: int = 0,
+        explorers: Optional[Sequence[ScriptedAgent]] = None,
+    ) -> None:
+        self.z_source = check_choice("z_source", z_source, Z_SOURCES)
+        self.explorers = None if explorers is None else list(explorers)
+        generator = th.Generator(device=model.device).manual_seed(seed)
+        # trial k's code: f(T) of its problem (noisy for "f_noisy")
+        ids = np.asarray(problem_ids, dtype=np.int64)
+        self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
+        self.g: Dict[int, np.ndarray] = {}  # trial -> g(tau^exp)
+        self._trials_started = 0
+        super().__init__(model, deterministic=True)
+
+    def reset(self, n_envs: int) -> None:
+        if self.explorers is not None and len(self.explorers) < n_envs:
+            raise ValueError(f"explorers has {len(self.explorers)} agents for {n_envs} slots: pass one per slot")
+        super().reset(n_envs)
+        self.trial = np.full(n_envs, -1, dtype=np.int64)
+        self._starting = list(range(n_envs))
+        for explorer in (self.explorers or [])[:n_envs]:
+            explorer.reset()
+
+    def start_trials(self, idx: np.ndarray) -> None:
+        super().start_trials(idx)
+        self._starting.extend(int(i) for i in idx)
+        for i in idx:
+            if self.explorers is not None:
+                self.explorers[i].reset()
+
+    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
+        for i in self._starting:
+            self.trial[i], self._trials_started = self._trials_started, self._trials_started + 1
+        self._starting = []
+        actions, explored = self.model._meta_test_act(self.state, obs, infos, self.deterministic)
+        for i in explored:
+            k = int(self.trial[i])
+            self.g[k] = self.state.z[i].copy()
+            if self.z_source != "g":
+                self.state.z[i] = self.f[k % len(self.f)]
+        if self.explorers is not None:
+            phases = np.asarray(obs["phase"]).reshape(len(infos), -1)[:, 0]
+            for i in np.flatnonzero(phases == EXPLORATION):
+                if infos[i]:  # a slot with no trial left has an empty info
+                    # the explorer's action replaces the policy's in the trajectory the decoder reads
+                    actions[i] = int(self.explorers[i].act({key: v[i] for key, v in obs.items()}, infos[i]))
+                    self.state.actions[i, self.state.length[i] - 1] = actions[i]
+        return actions
+
+    def codes(self) -> np.ndarray:
+        """g(tau^exp) of the trials played so far, in trial order [n, z]."""
+        return np.stack([self.g[k] for k in sorted(self.g)])
+
+
+class PrivilegedAgent(SingleTrialAgent):
+    """:class:`PrivilegedBatchAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`, for
+    reports that play trials in order), with one ``explorer``."""
 
     def __init__(
         self,
@@ -98,34 +162,13 @@ class PrivilegedAgent(DreamTrialAgent):
         seed: int = 0,
         explorer: Optional[ScriptedAgent] = None,
     ) -> None:
-        self.z_source = check_choice("z_source", z_source, Z_SOURCES)
-        self.explorer = explorer
-        generator = th.Generator(device=model.device).manual_seed(seed)
-        # trial k's code: f(T) of its problem (noisy for "f_noisy")
-        ids = np.asarray(problem_ids, dtype=np.int64)
-        self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
-        self.g: List[np.ndarray] = []
-        super().__init__(model, deterministic=True)
+        explorers = None if explorer is None else [explorer]
+        super().__init__(PrivilegedBatchAgent(model, problem_ids, z_source, seed, explorers))
 
-    def reset(self) -> None:
-        super().reset()
-        if self.explorer is not None:
-            self.explorer.reset()
-
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
-        action = super().act(obs, info)
-        if self.explorer is None or int(np.asarray(obs["phase"]).reshape(-1)[0]) != EXPLORATION:
-            return action
-        # the explorer's action replaces the policy's in the trajectory the decoder reads
-        action = int(self.explorer.act(obs, info))
-        self.state.actions[0, self.state.length[0] - 1] = action
-        return action
-
-    def _explored(self) -> None:
-        k = len(self.g)  # one exploration per trial, trials in order
-        self.g.append(self.state.z[0].copy())
-        if self.z_source != "g":
-            self.state.z[0] = self.f[k % len(self.f)]
+    @property
+    def state(self) -> Any:
+        """The model's trial state (the trajectory the decoder reads, z)."""
+        return self.agent.state
 
 
 def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
@@ -151,7 +194,8 @@ def trial_problem_ids(
 ) -> np.ndarray:
     """The problem of each of ``n_trials`` trials, as :func:`diagnose` plays them: ``problem_ids``
     cycled, or by default drawn uniformly from ``split_ids`` with ``seed``. Hand the result to
-    :class:`PrivilegedAgent` and to the trial runner (``problem_ids=``) to play the same trials."""
+    :class:`PrivilegedAgent` (or :class:`PrivilegedBatchAgent`) and to the trial runner
+    (``problem_ids=``) to play the same trials."""
     if problem_ids is None:
         return np.random.default_rng(seed).choice(np.asarray(split_ids), size=n_trials)
     if len(problem_ids) == 0:
@@ -167,6 +211,7 @@ def diagnose(
     seed: int = 0,
     env_kwargs: Optional[Dict[str, Any]] = None,
     problem_ids: Optional[Sequence[int]] = None,
+    n_envs: int = 16,
 ) -> DreamDiagnosis:
     """Meta-test ``model`` on the same ``n_trials`` trials of ``split`` with z = g(tau^exp), with
     z = f(T) and (if the model's encoder is noisy) with z ~ N(f(T), rho^2 I); see the module
@@ -174,32 +219,38 @@ def diagnose(
 
     :param problem_ids: trial k's problem is ``problem_ids[k % len(problem_ids)]``; by default
         problems are drawn uniformly from ``split`` with ``seed``.
+    :param n_envs: trials played side by side (an env ID is made that many times; a single env is
+        played alone, a list of envs side by side, as in :func:`~sb3_dream.evaluation.evaluate_meta`).
+        The same trials with any ``n_envs``, up to the rounding of batched matrix products.
     """
     if not isinstance(model, DREAM):
         raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
     n_trials = check_positive_int("n_trials", n_trials)
-    trial_env = _make_env(env, split, 1, env_kwargs)  # the env checks ``split``
-    split_ids = np.asarray(trial_env.unwrapped.problem_ids(split))
+    n_envs = check_positive_int("n_envs", n_envs)
+    envs, made = _make_envs(env, split, 1, env_kwargs, min(n_envs, n_trials))  # the envs check ``split``
+    trial_env = envs[0].unwrapped
+    split_ids = np.asarray(trial_env.problem_ids(split))
     problem_ids = trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+
+    def play(agent: PrivilegedBatchAgent) -> Any:
+        return evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
 
     results, agents = {}, {}
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
-        agents[source] = PrivilegedAgent(model, problem_ids, source, seed)
-        results[source] = evaluate_meta(agents[source], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids)
-    if hasattr(trial_env.unwrapped, "oracle"):  # custom trial envs may have none
-        explorer = make_oracle(trial_env)
-        agents["optimal_exploration"] = PrivilegedAgent(model, problem_ids, "g", seed, explorer=explorer)
-        results["optimal_exploration"] = evaluate_meta(
-            agents["optimal_exploration"], trial_env, n_trials, split, seed=seed, problem_ids=problem_ids
-        )
-    features = trial_env.unwrapped.problem_feature_table()[split_ids]
-    if isinstance(env, str):
-        trial_env.close()
+        agents[source] = PrivilegedBatchAgent(model, problem_ids, source, seed)
+        results[source] = play(agents[source])
+    if hasattr(trial_env, "oracle"):  # custom trial envs may have none
+        explorers = [make_oracle(e) for e in envs]
+        agents["optimal_exploration"] = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
+        results["optimal_exploration"] = play(agents["optimal_exploration"])
+    features = trial_env.problem_feature_table()[split_ids]
+    for e in made:
+        e.close()
 
     f = agents["g"].f
 
-    def decoder_error(agent: PrivilegedAgent) -> float:  # mean ||g(tau^exp) - f(T)||^2 over the trials
-        return float(((np.stack(agent.g) - f) ** 2).sum(axis=1).mean())
+    def decoder_error(agent: PrivilegedBatchAgent) -> float:  # mean ||g(tau^exp) - f(T)||^2 over the trials
+        return float(((agent.codes() - f) ** 2).sum(axis=1).mean())
 
     optimal = results.get("optimal_exploration")
     f_split = model._encode(split_ids, noisy=False)

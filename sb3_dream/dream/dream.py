@@ -45,7 +45,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Rollout
 from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
-from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent
+from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent, SingleTrialAgent
 from dream_envs.core import check_choice
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
@@ -879,22 +879,8 @@ class DreamBatchTrialAgent(BatchTrialAgent):
         return self.model._meta_test_act(self.state, obs, infos, self.deterministic)[0]
 
 
-class DreamTrialAgent(ScriptedAgent):
-    """DREAM at meta-test on one trial env, one trial at a time (see :class:`DreamBatchTrialAgent`)."""
+class DreamTrialAgent(SingleTrialAgent):
+    """:class:`DreamBatchTrialAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
 
     def __init__(self, model: DREAM, deterministic: bool = True) -> None:
-        self.model, self.deterministic = model, deterministic
-        self.reset()
-
-    def reset(self) -> None:
-        self.state = self.model.new_trial_state(1)
-
-    def _explored(self) -> None:
-        """Called once the exploration episode is over and ``self.state.z`` holds g(tau^exp)
-        (a hook for :func:`sb3_dream.dream.diagnostics.diagnose`)."""
-
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
-        actions, explored = self.model._meta_test_act(self.state, obs, [info], self.deterministic)
-        if len(explored):
-            self._explored()
-        return int(actions[0])
+        super().__init__(DreamBatchTrialAgent(model, deterministic))
