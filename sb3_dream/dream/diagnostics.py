@@ -152,18 +152,11 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
 
 class PrivilegedAgent(SingleTrialAgent):
     """:class:`PrivilegedBatchAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`, for
-    reports that play trials in order), with one ``explorer``."""
+    reports that play trials in order): its arguments (``model, problem_ids, z_source, seed``), with
+    one ``explorer``."""
 
-    def __init__(
-        self,
-        model: DREAM,
-        problem_ids: Sequence[int],
-        z_source: str = "f",
-        seed: int = 0,
-        explorer: Optional[ScriptedAgent] = None,
-    ) -> None:
-        explorers = None if explorer is None else [explorer]
-        super().__init__(PrivilegedBatchAgent(model, problem_ids, z_source, seed, explorers))
+    def __init__(self, *args: Any, explorer: Optional[ScriptedAgent] = None, **kwargs: Any) -> None:
+        super().__init__(PrivilegedBatchAgent(*args, explorers=None if explorer is None else [explorer], **kwargs))
 
     @property
     def state(self) -> Any:
