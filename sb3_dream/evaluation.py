@@ -284,10 +284,7 @@ class MetaEvalCallback(BaseCallback):
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
-        if best_ties not in BEST_TIES:
-            accepted = ", ".join(map(repr, BEST_TIES))
-            raise ValueError(f"best_ties={best_ties!r} is not valid; accepted values: {accepted}")
-        self.best_ties = best_ties
+        self.best_ties = check_choice("best_ties", best_ties, BEST_TIES)
         self.eval_freq = check_positive_int("eval_freq", eval_freq)
         self.n_trials = check_positive_int("n_trials", n_trials)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)

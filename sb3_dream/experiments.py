@@ -95,6 +95,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from dream_envs import all_splits, env_splits
+from dream_envs.core import check_choice
 from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS
 
 ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
@@ -221,9 +222,7 @@ class RunConfig:
                 f"select_on={self.select_on!r} is not valid; accepted values: the evaluated splits "
                 f"{', '.join(map(repr, self.eval_splits))} (add it to eval_splits), or '' (off)"
             )
-        if self.select_ties not in BEST_TIES:
-            accepted = ", ".join(map(repr, BEST_TIES))
-            raise ValueError(f"select_ties={self.select_ties!r} is not valid; accepted values: {accepted}")
+        check_choice("select_ties", self.select_ties, BEST_TIES)
         if "bottleneck" in dict(self.dream_kwargs):
             raise ValueError("dream_kwargs must not set bottleneck: choose the algorithm dream or dream_no_bottleneck")
 
