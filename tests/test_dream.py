@@ -491,6 +491,11 @@ def test_diagnose_side_by_side_is_diagnose_one_trial_at_a_time(bus_model):
         assert side.as_dict()[key] == pytest.approx(value, rel=1e-5, abs=1e-6), key
     with pytest.raises(ValueError, match="n_envs"):
         diagnose(bus_model, "MetaBus-v0", n_trials=2, n_envs=0)
+    from dream_envs import make_oracle
+    from sb3_dream.dream import PrivilegedBatchAgent
+
+    with pytest.raises(ValueError, match="explorers has 1 agents for 3 slots: pass one per slot"):
+        PrivilegedBatchAgent(bus_model, ids, "g", explorers=[make_oracle(gym.make("MetaBus-v0"))]).reset(3)
 
 
 def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):

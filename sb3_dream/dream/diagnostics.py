@@ -122,8 +122,8 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
     def start_trials(self, idx: np.ndarray) -> None:
         super().start_trials(idx)
         self._starting.extend(int(i) for i in idx)
-        for i in idx:
-            if self.explorers is not None:
+        if self.explorers is not None:
+            for i in idx:
                 self.explorers[i].reset()
 
     def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
