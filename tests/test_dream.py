@@ -10,6 +10,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_dream import DREAM, MetaEvalCallback
+from sb3_dream.dream.dream import EXECUTION_TARGET_Z
 from sb3_dream.dream.policies import DreamPolicy, TrajectoryDecoder
 from sb3_dream.evaluation import evaluate_meta
 
@@ -300,9 +301,12 @@ def test_execution_target_z_rejects_other_values():
         DREAM("MetaBus-v0", execution_target_z="decoder")
 
 
-def test_parallel_updates_compute_what_sequential_updates_do(tmp_path):
+@pytest.mark.parametrize("target_z", EXECUTION_TARGET_Z)
+def test_parallel_updates_compute_what_sequential_updates_do(tmp_path, target_z):
+    # the worker thread runs the no-gradient passes (target decoder, reward codes) and the
+    # exploration update beside the execution update: same inputs, same order of parameter changes
     def trained(parallel: bool) -> DREAM:
-        model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, **FAST)
+        model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, execution_target_z=target_z, **FAST)
         model.learn(400)
         return model
 

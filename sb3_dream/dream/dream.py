@@ -29,9 +29,9 @@ from __future__ import annotations
 import io
 import pathlib
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
+from typing import Any, Callable, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
 
 import numpy as np
 import torch as th
@@ -138,10 +138,12 @@ class DREAM(TrialOffPolicyAlgorithm):
         horizon is terminal for the TD targets, as an episode "done" in the authors' DQN: the grid
         worlds' episodes *are* 20 steps long and their states hold no clock. True bootstraps there,
         treating the horizon as a time limit (SB3's ``handle_timeout_termination``).
-    :param parallel_updates: run each step's exploration update in a second thread while this one
-        runs the execution update (their networks and optimizers are disjoint once the exploration
-        rewards are computed). The same computations and the same results as sequential updates
-        (tested); faster when a second CPU core is free for this run, slower when it is not (for
+    :param parallel_updates: run each step's exploration update, with the no-gradient passes
+        (the exploration rewards' f and g, the target decoder's z), in a second thread while this
+        one runs the execution update (their networks and optimizers are disjoint once the rewards
+        are computed; the execution step waits for that). The same computations and the same
+        results as sequential updates (tested); faster when a second CPU core is free for this run
+        (one update 1.5x faster, see the README's Speed section), slower when it is not (for
         example several runs sharing the cores).
     :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
         (default): each loss's own source through the target networks, the target decoder's
@@ -715,36 +717,68 @@ class DREAM(TrialOffPolicyAlgorithm):
     def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> Dict[str, float]:
         """One gradient step of each part that is ready, in Algorithm 1's order: exploration
         (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21)."""
-        policy, buffers, stats = self.policy, self.replay_buffer, {}
-        exploration: Optional[Future] = None
+        buffers, stats = self.replay_buffer, {}
         if exploration_ready:
-            traj = buffers.exploration.get(self._rng.integers(len(buffers.exploration), size=batch_size))
-            with th.no_grad():  # the rewards are recomputed with the current f and g, as targets
-                g, f = policy.decoder(traj.states, traj.actions), policy.encoder(traj.problem_features)
-            if self.parallel_updates and execution_ready:
-                # From here on it touches only the exploration Q and its optimizer.
-                if self._update_thread is None:
-                    self._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
-                exploration = self._update_thread.submit(self._exploration_update, traj, g, f)
-            else:
-                stats.update(self._exploration_update(traj, g, f))
+            explored = buffers.exploration.get(self._rng.integers(len(buffers.exploration), size=batch_size))
         if execution_ready:
             exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
             traj = buffers.exploration.get(exe.slots)  # each transition's exploration trajectory
-            g = policy.decoder(traj.states, traj.actions)  # [B, T+1, z]: every prefix in one pass
-            stats.update(self._execution_losses(exe, traj, g, policy.encoder(traj.problem_features)))
-        if exploration is not None:
-            stats.update(exploration.result())
+        if self.parallel_updates and exploration_ready and execution_ready:
+            return self._parallel_update(explored, exe, traj)
+        if exploration_ready:
+            stats.update(self._exploration_update(explored, *self._reward_codes(explored)))
+        if execution_ready:
+            stats.update(self._execution_losses(exe, traj))
         return stats
 
-    def _execution_losses(self, exe, traj: TrajectoryBatch, g_all: th.Tensor, f: th.Tensor) -> Dict[str, float]:
+    @th.no_grad()
+    def _reward_codes(self, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
+        """g of every prefix and f(T) for the exploration rewards: the current networks, as targets."""
+        return self.policy.decoder(traj.states, traj.actions), self.policy.encoder(traj.problem_features)
+
+    @th.no_grad()
+    def _target_decoder_z(self, traj: TrajectoryBatch) -> th.Tensor:
+        """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
+        return self.policy.decoder_target(traj.states, traj.actions)[th.arange(len(traj.lengths), device=traj.lengths.device), traj.lengths]
+
+    def _parallel_update(self, explored: TrajectoryBatch, exe, traj: TrajectoryBatch) -> Dict[str, float]:
+        """``parallel_updates``: the no-gradient passes and the exploration update run in a second
+        thread beside the execution update, with the same inputs, so with the same results.
+
+        The worker runs, in order, the target decoder's pass for the execution targets (with
+        ``execution_target_z="own"``), the reward pass of the current f and g over the exploration
+        batch, and the exploration DDQN step. The execution update waits for the first before its
+        targets, and for the second before its optimizer step changes f and g.
+        """
+        if self._update_thread is None:
+            self._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
+        worker = self._update_thread
+        target_z_g = worker.submit(self._target_decoder_z, traj) if self.execution_target_z == "own" else None
+        codes = worker.submit(self._reward_codes, explored)
+        exploration = worker.submit(lambda: self._exploration_update(explored, *codes.result()))
+        stats = self._execution_losses(
+            exe, traj, target_z_g=None if target_z_g is None else target_z_g.result, before_step=codes.result
+        )
+        return {**exploration.result(), **stats}
+
+    def _execution_losses(
+        self,
+        exe,
+        traj: TrajectoryBatch,
+        target_z_g: Optional[Callable[[], th.Tensor]] = None,
+        before_step: Optional[Callable[[], Any]] = None,
+    ) -> Dict[str, float]:
         """Execution DDQN with z from g and from F, the bottleneck and the decoder loss, one step.
 
         Everything here is computed on the same execution samples (Appendix A: the bottleneck and
-        the decoder are updated "from the same execution replay buffer samples"): ``g_all``
-        [B, T+1, z] is g of every prefix of each transition's exploration trajectory, ``f`` [B, z].
+        the decoder are updated "from the same execution replay buffer samples"): g of every prefix
+        of each transition's exploration trajectory ``traj`` (one decoder pass), and f(T).
+        ``target_z_g`` gives the target decoder's z when another thread computes it;
+        ``before_step`` is called before the optimizer changes the networks.
         """
         policy = self.policy
+        g_all = policy.decoder(traj.states, traj.actions)  # [B, T+1, z]: every prefix in one pass
+        f = policy.encoder(traj.problem_features)
         n_exe = len(exe.actions)
         rows = th.arange(n_exe, device=self.device)
         lengths = traj.lengths
@@ -762,7 +796,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             )
             z_f_target = policy.encoder_target(traj.problem_features)
             if self.execution_target_z == "own":
-                z_g_target = policy.decoder_target(traj.states, traj.actions)[rows, lengths]
+                z_g_target = target_z_g() if target_z_g is not None else self._target_decoder_z(traj)
                 z_target = th.cat([z_g_target, z_f_target])
             else:  # "encoder": the authors' code, no decoder pass
                 z_target = z_f_target.repeat(2, 1)
@@ -788,6 +822,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         loss.backward()
         params = [p for group in policy.optimizer.param_groups for p in group["params"]]
         th.nn.utils.clip_grad_norm_(params, self.max_grad_norm)
+        if before_step is not None:
+            before_step()
         policy.optimizer.step()
         return {
             "execution_loss_traj": loss_traj.item(),
