@@ -739,7 +739,8 @@ class DREAM(TrialOffPolicyAlgorithm):
     @th.no_grad()
     def _target_decoder_z(self, traj: TrajectoryBatch) -> th.Tensor:
         """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
-        return self.policy.decoder_target(traj.states, traj.actions)[th.arange(len(traj.lengths), device=traj.lengths.device), traj.lengths]
+        rows = th.arange(len(traj.lengths), device=traj.lengths.device)
+        return self.policy.decoder_target(traj.states, traj.actions)[rows, traj.lengths]
 
     def _parallel_update(self, explored: TrajectoryBatch, exe, traj: TrajectoryBatch) -> Dict[str, float]:
         """``parallel_updates``: the no-gradient passes and the exploration update run in a second
