@@ -108,7 +108,9 @@ def main() -> None:
     parser.add_argument("--train-freq", type=int, default=4, help="env steps per update (paper: 4)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
-        "--parallel-updates", action="store_true", help="exploration and execution updates in two threads"
+        "--parallel-updates",
+        action="store_true",
+        help="DREAM(parallel_updates=True): the exploration update and the passes without gradient in a second thread",
     )
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
