@@ -6,17 +6,24 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
 (the networks choosing actions), stepping the envs, and in gradient updates.
 
     python benchmarks/dream_speed.py --env MetaBus-v0 --steps 4000 --n-envs 1 8 [--threads 1]
-    python benchmarks/dream_speed.py --parallel-updates      # DREAM(parallel_updates=True): 2 cores
+    python benchmarks/dream_speed.py --parallel-updates off  # sequential (default: DREAM's "auto")
     python benchmarks/dream_speed.py --compile               # torch.compile the networks' forwards
     python benchmarks/dream_speed.py --execution-target-z encoder   # the authors' target z
     python benchmarks/dream_speed.py --fused-adam            # torch.optim.Adam(fused=True)
     python benchmarks/dream_speed.py --n-envs 1 --profile 60 # + torch.profiler over 60 updates
     python benchmarks/dream_speed.py --env SignNav3D-v0 --device cuda   # the networks on a GPU
+
+Per-update times, for comparisons finer than the machine's drift (its speed can change by a third
+within an hour): one model per variant, all in this process, timed in interleaved rounds, medians.
+
+    python benchmarks/dream_speed.py --compare-updates 5 --threads 1 2   # sequential vs parallel
+    python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+fused-adam
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from collections import defaultdict
 
@@ -97,6 +104,57 @@ def profile(model: DREAM, n_updates: int) -> str:
     return f"{table}\n{summary}"
 
 
+PARALLEL_UPDATES = {"auto": "auto", "on": True, "off": False}  # --parallel-updates -> DREAM(parallel_updates=...)
+
+# The variants --compare-updates can time: DREAM kwargs on top of the paper's hyperparameters.
+VARIANTS = {
+    "default": {},  # parallel_updates="auto"
+    "sequential": {"parallel_updates": False},
+    "parallel": {"parallel_updates": True},
+    "fused-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": True}}},
+    "encoder-target": {"execution_target_z": "encoder"},
+}
+
+
+def variant_kwargs(name: str) -> dict:
+    """DREAM kwargs of a variant, or of several joined by "+" (e.g. "parallel+fused-adam")."""
+    kwargs: dict = {}
+    for part in name.split("+"):
+        if part not in VARIANTS:
+            raise SystemExit(f"unknown variant {part!r}; accepted: {', '.join(VARIANTS)}, joined by '+'")
+        for key, value in VARIANTS[part].items():
+            kwargs[key] = {**kwargs.get(key, {}), **value} if isinstance(value, dict) else value
+    return kwargs
+
+
+def compare_updates(
+    env_id: str, env_kwargs: dict, variants: list, threads: list, rounds: int, n_updates: int, warmup: int, seed: int
+) -> None:
+    """Milliseconds per update (one exploration and one execution update, batch 32) of each variant
+    at each torch thread count: ``rounds`` interleaved rounds of ``n_updates`` updates per model."""
+    models = {}
+    for name in variants:
+        env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
+        kwargs = variant_kwargs(name)
+        model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+        model.learn(warmup)  # both agents update from here on
+        models[name] = model
+    times: dict = defaultdict(list)
+    for _ in range(rounds):
+        for n_threads in threads:
+            th.set_num_threads(n_threads)
+            for name, model in models.items():
+                start = time.perf_counter()
+                model.train(n_updates, model.batch_size)
+                times[name, n_threads].append((time.perf_counter() - start) / n_updates * 1e3)
+    print(f"ms per update on {env_id}, median of {rounds} interleaved rounds of {n_updates} updates (min - max)")
+    width = max(len(name) for name in variants) + 2
+    print(f"{'variant':>{width}}{'threads':>9}{'median':>9}{'range':>16}")
+    for (name, n_threads), values in times.items():
+        span = f"{min(values):.1f} - {max(values):.1f}"
+        print(f"{name:>{width}}{n_threads:>9}{statistics.median(values):>9.1f}{span:>16}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="MetaBus-v0")
@@ -104,25 +162,50 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=4000, help="measured env steps per setting")
     parser.add_argument("--warmup", type=int, default=1000)
     parser.add_argument("--n-envs", type=int, nargs="+", default=[1, 8])
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument(
+        "--threads", type=int, nargs="+", default=[1], help="torch intra-op threads (several: --compare-updates)"
+    )
     parser.add_argument("--train-freq", type=int, default=4, help="env steps per update (paper: 4)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--parallel-updates",
-        action="store_true",
-        help="DREAM(parallel_updates=True): the exploration update and the passes without gradient in a second thread",
+        nargs="?",
+        const="on",
+        default="auto",
+        choices=list(PARALLEL_UPDATES),
+        help="DREAM(parallel_updates=...): the exploration update and the passes without gradient in a second"
+        " thread; 'auto' (DREAM's default: on with more than one core), bare flag: 'on', 'off': sequential",
     )
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
     parser.add_argument("--fused-adam", action="store_true", help="policy_kwargs optimizer_kwargs fused=True")
     parser.add_argument("--device", default="cpu", help="torch device of the networks (cpu, cuda, auto)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
+    parser.add_argument(
+        "--compare-updates", type=int, default=0, metavar="ROUNDS", help="time updates of --variants instead"
+    )
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=["sequential", "parallel"],
+        help=f"for --compare-updates: {', '.join(VARIANTS)}, or several joined by '+' (parallel+fused-adam)",
+    )
+    parser.add_argument("--updates", type=int, default=100, help="updates per round of --compare-updates")
     args = parser.parse_args()
-    th.set_num_threads(args.threads)
     env_kwargs = {"variant": args.variant} if args.variant else {}
+    if args.compare_updates:
+        compare_updates(
+            args.env, env_kwargs, args.variants, args.threads, args.compare_updates, args.updates, args.warmup,
+            args.seed,
+        )  # fmt: skip
+        return
+    if len(args.threads) > 1:
+        parser.error("several --threads values need --compare-updates")
+    th.set_num_threads(args.threads[0])
+    parallel_updates = PARALLEL_UPDATES[args.parallel_updates]
     print(
-        f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads}"
-        f" parallel_updates={args.parallel_updates} compile={args.compile}"
+        f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads[0]}"
+        f" parallel_updates={parallel_updates!r} compile={args.compile}"
         f" execution_target_z={args.execution_target_z} fused Adam={args.fused_adam} device={args.device}"
     )
     policy_kwargs = {"optimizer_kwargs": {"fused": True}} if args.fused_adam else None
@@ -130,7 +213,7 @@ def main() -> None:
     for n in args.n_envs:
         r = measure(
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
-            compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=args.parallel_updates,
+            compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=parallel_updates,
             execution_target_z=args.execution_target_z, profile_updates=args.profile, policy_kwargs=policy_kwargs,
             device=args.device,
         )  # fmt: skip

@@ -504,10 +504,11 @@ def _make_checkpoint_callback(
     return CheckpointAfterEvaluation()
 
 
-def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
+def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int = 1) -> Dict[str, Any]:
     """Train and evaluate one run; its files appear under their final names only once complete.
 
     With ``config.checkpoint_freq`` it goes on from the run's last checkpoint, if there is one.
+    ``concurrent_runs``: how many runs share the machine's cores with this one.
     """
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList
@@ -544,6 +545,10 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
         seconds_before = float(resume["train_seconds"])
         what = "its checkpoint" if init_from is None else f"the checkpoint under {config.init_from}"
         print(f"[{tag}] going on from {what} at {model.num_timesteps} env steps", flush=True)
+    if hasattr(model, "parallel_updates") and "parallel_updates" not in dict(config.dream_kwargs):
+        # How DREAM's updates run, not what they compute (like the device), so chosen here, each
+        # time: a second thread only helps when no other run needs the second core.
+        model.parallel_updates = "auto" if concurrent_runs == 1 else False
     callbacks = [
         _make_progress_callback(
             tag if len(config.eval_splits) == 1 else f"{tag} {split}",
@@ -659,10 +664,10 @@ def _meta_test_best(run: Run, config: RunConfig, best: Any, tag: str) -> Dict[st
     }
 
 
-def _run_worker(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[str, Any]:
+def _run_worker(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int = 1) -> Dict[str, Any]:
     """:func:`run_one` for a worker process: a failure is reported, not raised, so the others go on."""
     try:
-        return run_one(run, config, out)
+        return run_one(run, config, out, concurrent_runs)
     except Exception as error:  # noqa: BLE001  (reported with its traceback, the experiment goes on)
         return {
             "run": run,
@@ -759,7 +764,7 @@ def run_experiments(
         worker = importlib.import_module("sb3_dream.experiments")._run_worker
         context = multiprocessing.get_context("spawn")
         with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-            futures = [pool.submit(worker, run, config, out) for run in pending]
+            futures = [pool.submit(worker, run, config, out, jobs) for run in pending]
             for future in concurrent.futures.as_completed(futures):
                 records.append(future.result())
     for record in records:

@@ -273,7 +273,8 @@ def test_decoder_and_bottleneck_learn_from_the_execution_samples_only():
     assert all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
     calls.clear()
     model._update(8, exploration_ready=True, execution_ready=True)
-    assert calls == [("g", 8, False), ("f", 8, False), ("g", 8, True), ("f", 8, True)]
+    # sorted: with parallel updates the reward pass runs in the second thread beside the execution losses
+    assert sorted(calls) == [("f", 8, False), ("f", 8, True), ("g", 8, False), ("g", 8, True)]
     assert not all(th.equal(a, b) for a, b in zip(before, policy.decoder.parameters()))
 
 
@@ -321,6 +322,26 @@ def test_parallel_updates_compute_what_sequential_updates_do(tmp_path, target_z)
         assert not th.equal(untrained[key], parallel.policy.state_dict()[key]), key
     parallel.save(tmp_path / "parallel.zip")  # the thread is not saved; the option is
     assert DREAM.load(tmp_path / "parallel.zip").parallel_updates is True
+
+
+def test_parallel_updates_auto_follows_the_cores(monkeypatch):
+    import sb3_dream.dream.dream as dream_module
+
+    model = DREAM("MetaBus-v0", seed=3, **FAST)
+    assert model.parallel_updates == "auto"  # the default: resolved at each update, not saved resolved
+    monkeypatch.setattr(dream_module, "available_cores", lambda: 1)
+    assert model.updates_in_parallel is False
+    model.learn(400)
+    assert model._n_updates > 0 and model._update_thread is None  # one core: no second thread
+    monkeypatch.setattr(dream_module, "available_cores", lambda: 2)
+    assert model.updates_in_parallel is True
+    model.learn(200, reset_num_timesteps=False)
+    assert model._update_thread is not None
+    model.parallel_updates = False  # an explicit choice wins over the cores
+    assert model.updates_in_parallel is False
+    for bad in (1, 0, "yes", None):  # 1 and 0 equal True and False but are not flags
+        with pytest.raises(ValueError, match=r"parallel_updates=.*accepted values: True, False, 'auto'"):
+            DREAM("MetaBandit-v0", parallel_updates=bad)
 
 
 def test_execution_body_is_an_option(tmp_path):

@@ -165,6 +165,24 @@ def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path
     assert "snapshot_freq" not in config.settings("dream")
 
 
+@pytest.mark.parametrize(
+    "concurrent_runs, given, expected", [(1, None, "auto"), (2, None, False), (2, True, True), (1, False, False)]
+)
+def test_runner_turns_parallel_updates_off_when_runs_share_the_cores(tmp_path, concurrent_runs, given, expected):
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    kwargs = TINY_DREAM + ([] if given is None else [f"parallel_updates={given}"])
+    config = RunConfig(
+        steps=40, eval_freq=40, eval_trials=2, save_models=True,
+        dream_kwargs=tuple(sorted(parse_kwargs(kwargs, "dream").items())),
+    )  # fmt: skip
+    run = Run("dream", EnvSpec.parse("MetaBandit-v0"), 0)
+    assert experiments.run_one(run, config, tmp_path, concurrent_runs)["status"] == "done"
+    saved, _, _ = load_from_zip_file(run.model_path(tmp_path), device="cpu")
+    assert saved["parallel_updates"] == expected  # the user's choice wins; else "auto" for a run alone
+    assert ("parallel_updates" in config.settings("dream")["algo_kwargs"]) == (given is not None)
+
+
 @pytest.mark.parametrize("algo", ["dream", "rl2dqn"])
 def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch, algo):
     out = tmp_path / "results"

@@ -27,6 +27,7 @@ At meta-test the execution policy always uses z = g(tau^exp): the problem ID is 
 from __future__ import annotations
 
 import io
+import os
 import pathlib
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -57,6 +58,22 @@ SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
 # What the execution Q's target conditions on (DREAM(execution_target_z=...)).
 EXECUTION_TARGET_Z = ("own", "encoder")
+PARALLEL_UPDATES = (True, False, "auto")
+
+
+def check_parallel_updates(value: Any) -> Union[bool, str]:
+    """``value`` if it is True, False or "auto" (not 1 or 0, which equal True and False)."""
+    if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
+        accepted = ", ".join(map(repr, PARALLEL_UPDATES))
+        raise ValueError(f"parallel_updates={value!r} is not valid; accepted values: {accepted}")
+    return value
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity where the OS tells it)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 @dataclass
@@ -142,9 +159,11 @@ class DREAM(TrialOffPolicyAlgorithm):
         (the exploration rewards' f and g, the target decoder's z), in a second thread while this
         one runs the execution update (their networks and optimizers are disjoint once the rewards
         are computed; the execution step waits for that). The same computations and the same
-        results as sequential updates (tested); faster when a second CPU core is free for this run
-        (one update 1.5x faster, see the README's Speed section), slower when it is not (for
-        example several runs sharing the cores).
+        results as sequential updates (tested), so it changes the speed only: about 1.3-1.5x
+        faster updates when a second CPU core is free for this run (see the README's Speed
+        section), slower when it is not (several runs sharing the cores: the experiment runner
+        turns it off when it runs more than one at once). ``"auto"`` (default): on when the
+        networks are on the CPU and this process may run on more than one core.
     :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
         (default): each loss's own source through the target networks, the target decoder's
         g(tau^exp) for the loss with z from g and the target encoder's f(T) for the loss with z from
@@ -187,7 +206,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         max_grad_norm: float = 10.0,
         z_dim: int = 64,
         bootstrap_at_horizon: bool = False,
-        parallel_updates: bool = False,
+        parallel_updates: Union[bool, str] = "auto",
         execution_target_z: str = "own",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
@@ -215,6 +234,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
                 raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
+        check_parallel_updates(parallel_updates)
         if encoder_variance < 0 or bottleneck_threshold < 0 or bottleneck_weight < 0:
             raise ValueError("encoder_variance, bottleneck_threshold and bottleneck_weight must be >= 0")
 
@@ -254,7 +274,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.max_grad_norm = max_grad_norm
         self.z_dim = z_dim
         self.bootstrap_at_horizon = bootstrap_at_horizon
-        self.parallel_updates = bool(parallel_updates)
+        self.parallel_updates = parallel_updates
         self.execution_target_z = execution_target_z
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
@@ -723,7 +743,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         if execution_ready:
             exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
             traj = buffers.exploration.get(exe.slots)  # each transition's exploration trajectory
-        if self.parallel_updates and exploration_ready and execution_ready:
+        if self.updates_in_parallel and exploration_ready and execution_ready:
             return self._parallel_update(explored, exe, traj)
         if exploration_ready:
             stats.update(self._exploration_update(explored, *self._reward_codes(explored)))
@@ -741,6 +761,13 @@ class DREAM(TrialOffPolicyAlgorithm):
         """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
         rows = th.arange(len(traj.lengths), device=traj.lengths.device)
         return self.policy.decoder_target(traj.states, traj.actions)[rows, traj.lengths]
+
+    @property
+    def updates_in_parallel(self) -> bool:
+        """Whether the exploration update runs in a second thread (``parallel_updates``, "auto" resolved)."""
+        if isinstance(self.parallel_updates, str):  # "auto"
+            return self.device.type == "cpu" and available_cores() > 1
+        return bool(self.parallel_updates)
 
     def _parallel_update(self, explored: TrajectoryBatch, exe, traj: TrajectoryBatch) -> Dict[str, float]:
         """``parallel_updates``: the no-gradient passes and the exploration update run in a second
