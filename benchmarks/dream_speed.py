@@ -9,7 +9,7 @@ batch 32, as in the paper). Prints env steps per second and the share of wall-cl
     python benchmarks/dream_speed.py --parallel-updates off  # sequential (default: DREAM's "auto")
     python benchmarks/dream_speed.py --compile               # torch.compile the networks' forwards
     python benchmarks/dream_speed.py --execution-target-z encoder   # the authors' target z
-    python benchmarks/dream_speed.py --fused-adam            # torch.optim.Adam(fused=True)
+    python benchmarks/dream_speed.py --loop-adam             # Adam's per-parameter loop (default: fused)
     python benchmarks/dream_speed.py --n-envs 1 --profile 60 # + torch.profiler over 60 updates
     python benchmarks/dream_speed.py --env SignNav3D-v0 --device cuda   # the networks on a GPU
 
@@ -17,7 +17,7 @@ Per-update times, for comparisons finer than the machine's drift (its speed can 
 within an hour): one model per variant, all in this process, timed in interleaved rounds, medians.
 
     python benchmarks/dream_speed.py --compare-updates 5 --threads 1 2   # sequential vs parallel
-    python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+fused-adam
+    python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+loop-adam
 """
 
 from __future__ import annotations
@@ -111,7 +111,8 @@ VARIANTS = {
     "default": {},  # parallel_updates="auto"
     "sequential": {"parallel_updates": False},
     "parallel": {"parallel_updates": True},
-    "fused-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": True}}},
+    "fused-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": True}}},  # DREAM's default
+    "loop-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": False}}},  # torch's per-parameter loop
     "encoder-target": {"execution_target_z": "encoder"},
 }
 
@@ -178,7 +179,9 @@ def main() -> None:
     )
     parser.add_argument("--compile", action="store_true", help="torch.compile the networks' forward passes")
     parser.add_argument("--execution-target-z", default="own", choices=["own", "encoder"], help="DREAM's option")
-    parser.add_argument("--fused-adam", action="store_true", help="policy_kwargs optimizer_kwargs fused=True")
+    adam = parser.add_mutually_exclusive_group()
+    adam.add_argument("--fused-adam", action="store_true", help="optimizer_kwargs fused=True (DREAM's default)")
+    adam.add_argument("--loop-adam", action="store_true", help="optimizer_kwargs fused=False: the per-parameter loop")
     parser.add_argument("--device", default="cpu", help="torch device of the networks (cpu, cuda, auto)")
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     parser.add_argument(
@@ -206,9 +209,9 @@ def main() -> None:
     print(
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads[0]}"
         f" parallel_updates={parallel_updates!r} compile={args.compile}"
-        f" execution_target_z={args.execution_target_z} fused Adam={args.fused_adam} device={args.device}"
+        f" execution_target_z={args.execution_target_z} fused Adam={not args.loop_adam} device={args.device}"
     )
-    policy_kwargs = {"optimizer_kwargs": {"fused": True}} if args.fused_adam else None
+    policy_kwargs = {"optimizer_kwargs": {"fused": not args.loop_adam}}
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
         r = measure(
