@@ -4,7 +4,9 @@ Each run trains one algorithm on one env with one seed for ``--steps`` env steps
 on the held-out split every ``--eval-freq`` steps (``--eval-trials`` meta-test trials, greedy) with
 :class:`sb3_dream.evaluation.MetaEvalCallback`, which writes the run's learning curve as a CSV
 (``env_steps, wall_clock_s, mean, ci, exploration_length``). Runs go to parallel processes, up to
-``--jobs`` (default: the machine's cores) at once.
+``--jobs`` (default: the machine's cores) at once. DREAM's ``parallel_updates`` (the second update
+thread) is chosen per run unless ``--dream-kwargs`` set it: its ``"auto"`` for a run alone, off
+when several runs share the cores (it changes the speed, not the results).
 
 **Resumable.** A run writes ``<name>.csv.partial`` and renames it to ``<name>.csv`` only when it
 is complete, so a finished run is skipped when the command is run again (whatever the other
