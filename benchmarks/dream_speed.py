@@ -18,6 +18,7 @@ within an hour): one model per variant, all in this process, timed in interleave
 
     python benchmarks/dream_speed.py --compare-updates 5 --threads 1 2   # sequential vs parallel
     python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+loop-adam
+    python benchmarks/dream_speed.py --parts --variants default   # each part of the update, timed alone
 """
 
 from __future__ import annotations
@@ -156,6 +157,39 @@ def compare_updates(
         print(f"{name:>{width}}{n_threads:>9}{statistics.median(values):>9.1f}{span:>16}")
 
 
+def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, warmup: int, seed: int) -> None:
+    """Milliseconds of each part of an update, run one after the other in this thread: what
+    ``parallel_updates`` splits between the two threads (medians over ``n_updates`` updates)."""
+    env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
+    kwargs = {**variant_kwargs(variant), "parallel_updates": False}
+    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+    model.learn(warmup)
+    model.policy.set_training_mode(True)
+    buffers, own = model.replay_buffer, model.execution_target_z == "own"
+    times: dict = defaultdict(list)
+
+    def timed_part(name: str, fn):
+        start = time.perf_counter()
+        result = fn()
+        times[name].append((time.perf_counter() - start) * 1e3)
+        return result
+
+    for _ in range(n_updates):  # the order of DREAM._update with parallel_updates
+        explored = buffers.exploration.get(model._rng.integers(len(buffers.exploration), size=model.batch_size))
+        exe = buffers.execution.sample(model.batch_size, buffers.exploration, model._rng)
+        traj = buffers.exploration.get(exe.slots)
+        z = timed_part("worker: target decoder's z", lambda: model._target_decoder_z(traj)) if own else None
+        codes = timed_part("worker: reward pass (f, g)", lambda: model._reward_codes(explored))
+        timed_part("worker: exploration update", lambda: model._exploration_update(explored, *codes))
+        target = None if z is None else (lambda: z)
+        timed_part("main: execution losses + step", lambda: model._execution_losses(exe, traj, target_z_g=target))
+    print(f"ms per part on {env_id} ({variant}), median of {n_updates} updates, one thread")
+    for name, values in times.items():
+        print(f"{name:>32}{statistics.median(values):>8.2f}")
+    worker = sum(statistics.median(v) for k, v in times.items() if k.startswith("worker"))
+    print(f"{'worker thread, in all':>32}{worker:>8.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="MetaBus-v0")
@@ -194,8 +228,15 @@ def main() -> None:
         help=f"for --compare-updates: {', '.join(VARIANTS)}, or several joined by '+' (parallel+fused-adam)",
     )
     parser.add_argument("--updates", type=int, default=100, help="updates per round of --compare-updates")
+    parser.add_argument(
+        "--parts", action="store_true", help="time each part of --updates updates (first of --variants), one thread"
+    )
     args = parser.parse_args()
     env_kwargs = {"variant": args.variant} if args.variant else {}
+    if args.parts:
+        th.set_num_threads(args.threads[0])
+        update_parts(args.env, env_kwargs, args.variants[0], args.updates, args.warmup, args.seed)
+        return
     if args.compare_updates:
         compare_updates(
             args.env, env_kwargs, args.variants, args.threads, args.compare_updates, args.updates, args.warmup,
