@@ -159,7 +159,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         (the exploration rewards' f and g, the target decoder's z), in a second thread while this
         one runs the execution update (their networks and optimizers are disjoint once the rewards
         are computed; the execution step waits for that). The same computations and the same
-        results as sequential updates (tested), so it changes the speed only: about 1.3-1.5x
+        results as sequential updates (tested), so it changes the speed only: about 1.2-1.6x
         faster updates when a second CPU core is free for this run (see the README's Speed
         section), slower when it is not (several runs sharing the cores: the experiment runner
         turns it off when it runs more than one at once). ``"auto"`` (default): on when the
