@@ -59,8 +59,11 @@ EXPLORATION, EXECUTION = 0, 1
 
 
 def check_choice(name: str, value: Any, choices: Sequence[Any]) -> Any:
-    """Raise a ``ValueError`` naming ``name`` and the accepted values unless ``value`` is one of them."""
-    if value not in choices:
+    """Raise a ``ValueError`` naming ``name`` and the accepted values unless ``value`` is one of them.
+
+    Booleans only match booleans: ``1 == True`` in Python, but 1 is not an accepted ``True``.
+    """
+    if not any(value == c and isinstance(value, bool) == isinstance(c, bool) for c in choices):
         raise ValueError(f"{name}={value!r} is not valid; accepted values: {', '.join(map(repr, choices))}")
     return value
 

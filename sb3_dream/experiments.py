@@ -547,7 +547,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         seconds_before = float(resume["train_seconds"])
         what = "its checkpoint" if init_from is None else f"the checkpoint under {config.init_from}"
         print(f"[{tag}] going on from {what} at {model.num_timesteps} env steps", flush=True)
-    if hasattr(model, "parallel_updates") and "parallel_updates" not in dict(config.dream_kwargs):
+    if run.algo in ("dream", "dream_no_bottleneck") and "parallel_updates" not in dict(config.dream_kwargs):
         # How DREAM's updates run, not what they compute (like the device), so chosen here, each
         # time: a second thread only helps when no other run needs the second core.
         model.parallel_updates = "auto" if concurrent_runs == 1 else False

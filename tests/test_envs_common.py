@@ -160,3 +160,17 @@ def test_env_splits_are_read_from_the_class_without_making_the_env():
     assert dream_envs.all_splits() == (*common, "test_problems", "test_instructions")
     with pytest.raises(gym.error.Error):
         dream_envs.env_splits("NoSuchEnv-v0")
+
+
+def test_check_choice_names_the_argument_and_keeps_booleans_apart():
+    from dream_envs.core import check_choice
+
+    assert check_choice("mode", "auto", (True, False, "auto")) == "auto"
+    assert check_choice("mode", False, (True, False, "auto")) is False
+    assert check_choice("size", 2, (1, 2, 3)) == 2
+    # 1 == True and 0 == False in Python; neither is accepted in place of the other.
+    for name, value, choices in (("mode", 1, (True, False)), ("mode", 0, (True, False)), ("size", True, (1, 2))):
+        with pytest.raises(ValueError, match=f"{name}={value!r} is not valid; accepted values: "):
+            check_choice(name, value, choices)
+    with pytest.raises(ValueError, match="split='val' is not valid; accepted values: 'train', 'test'"):
+        check_choice("split", "val", ("train", "test"))

@@ -61,14 +61,6 @@ EXECUTION_TARGET_Z = ("own", "encoder")
 PARALLEL_UPDATES = (True, False, "auto")
 
 
-def check_parallel_updates(value: Any) -> Union[bool, str]:
-    """``value`` if it is True, False or "auto" (not 1 or 0, which equal True and False)."""
-    if not (isinstance(value, bool) or (isinstance(value, str) and value == "auto")):
-        accepted = ", ".join(map(repr, PARALLEL_UPDATES))
-        raise ValueError(f"parallel_updates={value!r} is not valid; accepted values: {accepted}")
-    return value
-
-
 def available_cores() -> int:
     """CPU cores this process may run on (its affinity where the OS tells it)."""
     if hasattr(os, "sched_getaffinity"):
@@ -234,7 +226,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
                 raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
-        check_parallel_updates(parallel_updates)
+        check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
         if encoder_variance < 0 or bottleneck_threshold < 0 or bottleneck_weight < 0:
             raise ValueError("encoder_variance, bottleneck_threshold and bottleneck_weight must be >= 0")
 
