@@ -18,7 +18,8 @@ within an hour): one model per variant, all in this process, timed in interleave
 
     python benchmarks/dream_speed.py --compare-updates 5 --threads 1 2   # sequential vs parallel
     python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+loop-adam
-    python benchmarks/dream_speed.py --parts --variants default   # each part of the update, timed alone
+    python benchmarks/dream_speed.py --parts --variants default   # each part of the update, timed alone,
+                                                                  # with its FLOPs and its GFLOP/s
 """
 
 from __future__ import annotations
@@ -157,9 +158,39 @@ def compare_updates(
         print(f"{name:>{width}}{n_threads:>9}{statistics.median(values):>9.1f}{span:>16}")
 
 
+def _lstm_flops(input_shape, w_ih_shape, w_hh_shape) -> int:
+    """Multiply-adds x 2 of one LSTM layer's forward: every step's gates, W_ih x + W_hh h, for every row."""
+    return 2 * input_shape[0] * input_shape[1] * w_ih_shape[0] * (w_ih_shape[1] + w_hh_shape[1])
+
+
+# torch's FLOP counter knows matrix products but not the CPU's fused (oneDNN) LSTM kernels: their
+# forward is counted like the products it does; the backward does twice that (gradients of the
+# inputs and of the weights).
+LSTM_FLOP_FORMULAS = {
+    th.ops.aten.mkldnn_rnn_layer: lambda x, w_ih, w_hh, *args, out_shape=None, **kwargs: _lstm_flops(x, w_ih, w_hh),
+    th.ops.aten.mkldnn_rnn_layer_backward: (
+        lambda x, w_ih, w_hh, *args, out_shape=None, **kwargs: 2 * _lstm_flops(x, w_ih, w_hh)
+    ),
+}
+
+
+def matmul_gflops(size: int = 512, repeats: int = 50) -> float:
+    """This core's rate on a plain square matrix product: the yardstick for the update's parts."""
+    a, b = th.randn(size, size), th.randn(size, size)
+    for _ in range(5):
+        a @ b
+    start = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2 * size**3 * repeats / (time.perf_counter() - start) / 1e9
+
+
 def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, warmup: int, seed: int) -> None:
     """Milliseconds of each part of an update, run one after the other in this thread: what
-    ``parallel_updates`` splits between the two threads (medians over ``n_updates`` updates)."""
+    ``parallel_updates`` splits between the two threads (medians over ``n_updates`` updates), with
+    each part's floating-point work (torch's FLOP counter, LSTM kernels included) and its rate."""
+    from torch.utils.flop_counter import FlopCounterMode
+
     env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
     kwargs = {**variant_kwargs(variant), "parallel_updates": False}
     model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
@@ -167,6 +198,7 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
     model.policy.set_training_mode(True)
     buffers, own = model.replay_buffer, model.execution_target_z == "own"
     times: dict = defaultdict(list)
+    flops: dict = defaultdict(list)
 
     def timed_part(name: str, fn):
         start = time.perf_counter()
@@ -174,20 +206,36 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
         times[name].append((time.perf_counter() - start) * 1e3)
         return result
 
-    for _ in range(n_updates):  # the order of DREAM._update with parallel_updates
+    def counted_part(name: str, fn):  # the same part again, untimed, for its FLOPs
+        with FlopCounterMode(display=False, custom_mapping=LSTM_FLOP_FORMULAS) as counter:
+            result = fn()
+        flops[name].append(counter.get_total_flops())
+        return result
+
+    for i in range(n_updates):  # the order of DREAM._update with parallel_updates
         explored = buffers.exploration.get(model._rng.integers(len(buffers.exploration), size=model.batch_size))
         exe = buffers.execution.sample(model.batch_size, buffers.exploration, model._rng)
         traj = buffers.exploration.get(exe.slots)
-        z = timed_part("worker: target decoder's z", lambda: model._target_decoder_z(traj)) if own else None
-        codes = timed_part("worker: reward pass (f, g)", lambda: model._reward_codes(explored))
-        timed_part("worker: exploration update", lambda: model._exploration_update(explored, *codes))
+        # Every 10th update is counted instead of timed (the counter slows what it counts); each
+        # part runs once either way, so the networks follow the same updates.
+        part = counted_part if i % 10 == 9 else timed_part
+        z = part("worker: target decoder's z", lambda: model._target_decoder_z(traj)) if own else None
+        codes = part("worker: reward pass (f, g)", lambda: model._reward_codes(explored))
+        part("worker: exploration update", lambda: model._exploration_update(explored, *codes))
         target = None if z is None else (lambda: z)
-        timed_part("main: execution losses + step", lambda: model._execution_losses(exe, traj, target_z_g=target))
+        part("main: execution losses + step", lambda: model._execution_losses(exe, traj, target_z_g=target))
     print(f"ms per part on {env_id} ({variant}), median of {n_updates} updates, one thread")
-    for name, values in times.items():
-        print(f"{name:>32}{statistics.median(values):>8.2f}")
-    worker = sum(statistics.median(v) for k, v in times.items() if k.startswith("worker"))
-    print(f"{'worker thread, in all':>32}{worker:>8.2f}")
+    print(f"{'':>32}{'ms':>8}{'GFLOP':>8}{'GFLOP/s':>9}")
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    gflop = {k: statistics.mean(v) / 1e9 for k, v in flops.items()}
+    for name in ms:
+        print(f"{name:>32}{ms[name]:>8.2f}{gflop[name]:>8.3f}{gflop[name] / ms[name] * 1e3:>9.1f}")
+    for side in ("worker", "main"):
+        side_ms = sum(v for k, v in ms.items() if k.startswith(side))
+        side_gflop = sum(v for k, v in gflop.items() if k.startswith(side))
+        label = f"{side} thread, in all"
+        print(f"{label:>32}{side_ms:>8.2f}{side_gflop:>8.3f}{side_gflop / side_ms * 1e3:>9.1f}")
+    print(f"a 512 x 512 matrix product on this core: {matmul_gflops():.1f} GFLOP/s")
 
 
 def main() -> None:
