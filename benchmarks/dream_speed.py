@@ -282,6 +282,8 @@ def main() -> None:
     args = parser.parse_args()
     env_kwargs = {"variant": args.variant} if args.variant else {}
     if args.parts:
+        if args.updates < 10:  # every 10th update is the one whose FLOPs are counted
+            parser.error(f"--parts needs --updates >= 10, got {args.updates}")
         th.set_num_threads(args.threads[0])
         update_parts(args.env, env_kwargs, args.variants[0], args.updates, args.warmup, args.seed)
         return

@@ -100,7 +100,8 @@ from dream_envs import all_splits, env_splits
 from dream_envs.core import check_choice
 from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS
 
-ALGOS = ("dream", "dream_no_bottleneck", "rl2dqn")
+DREAM_ALGOS = ("dream", "dream_no_bottleneck")  # the runs that train sb3_dream.DREAM
+ALGOS = (*DREAM_ALGOS, "rl2dqn")
 PRESET_NAMES = ("paper", "fast")
 
 RL2DQN_PRESETS: Dict[str, Dict[str, Any]] = {
@@ -281,7 +282,7 @@ class Run:
 
 def algorithm_class(algo: str) -> type:
     """The class that trains ``algo``: DREAM for both DREAM variants, RL2DQN for rl2dqn."""
-    if algo in ("dream", "dream_no_bottleneck"):
+    if algo in DREAM_ALGOS:
         from sb3_dream.dream import DREAM
 
         return DREAM
@@ -547,7 +548,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         seconds_before = float(resume["train_seconds"])
         what = "its checkpoint" if init_from is None else f"the checkpoint under {config.init_from}"
         print(f"[{tag}] going on from {what} at {model.num_timesteps} env steps", flush=True)
-    if run.algo in ("dream", "dream_no_bottleneck") and "parallel_updates" not in dict(config.dream_kwargs):
+    if run.algo in DREAM_ALGOS and "parallel_updates" not in dict(config.dream_kwargs):
         # How DREAM's updates run, not what they compute (like the device), so chosen here, each
         # time: a second thread only helps when no other run needs the second core.
         model.parallel_updates = "auto" if concurrent_runs == 1 else False
@@ -612,7 +613,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
     }
     if best is not None and best.best_env_steps is not None:
         info["best"] = _meta_test_best(run, config, best, tag)
-    if run.algo in ("dream", "dream_no_bottleneck"):
+    if run.algo in DREAM_ALGOS:
         from sb3_dream.dream import diagnose
 
         # Which side limits the final model: meta-test vs the execution policy given z = f(T)
