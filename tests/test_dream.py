@@ -75,6 +75,9 @@ def test_decoder_gives_every_prefix_in_one_pass_and_ignores_padding():
     assert not th.allclose(g[:, 4], g2[:, 4])
     # the empty prefix is the same for every trajectory
     th.testing.assert_close(g[0, 0], g[1, 0])
+    # with lengths, only each trajectory's own prefix: the same values as indexing every prefix
+    lengths = th.tensor([4, 2])
+    th.testing.assert_close(decoder(states, actions, lengths), g[th.arange(2), lengths])
 
 
 def test_z_sources_alternate_across_trials():

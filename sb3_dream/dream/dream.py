@@ -381,10 +381,11 @@ class DREAM(TrialOffPolicyAlgorithm):
         """g(tau_:n) for envs ``idx`` from their stored exploration trajectories (one fused pass)."""
         t = int(max(1, n_transitions.max()))
         g = self.policy.decoder(
-            self._obs_tensor(state.states[idx, : t + 1]), self._obs_tensor(state.actions[idx, :t])
-        )  # [k, t+1, z]
-        rows = th.arange(len(idx), device=self.device)
-        return g[rows, th.as_tensor(n_transitions, device=self.device)].cpu().numpy()
+            self._obs_tensor(state.states[idx, : t + 1]),
+            self._obs_tensor(state.actions[idx, :t]),
+            th.as_tensor(n_transitions, device=self.device),
+        )  # [k, z]
+        return g.cpu().numpy()
 
     @th.no_grad()
     def _encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
@@ -751,8 +752,7 @@ class DREAM(TrialOffPolicyAlgorithm):
     @th.no_grad()
     def _target_decoder_z(self, traj: TrajectoryBatch) -> th.Tensor:
         """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
-        rows = th.arange(len(traj.lengths), device=traj.lengths.device)
-        return self.policy.decoder_target(traj.states, traj.actions)[rows, traj.lengths]
+        return self.policy.decoder_target(traj.states, traj.actions, traj.lengths)
 
     @property
     def updates_in_parallel(self) -> bool:

@@ -60,16 +60,19 @@ class TrajectoryDecoder(nn.Module):
         self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
         self.head = nn.Sequential(nn.Linear(hidden_size, 128), nn.ReLU(), nn.Linear(128, z_dim))
 
-    def forward(self, states: th.Tensor, actions: th.Tensor) -> th.Tensor:
+    def forward(self, states: th.Tensor, actions: th.Tensor, lengths: Optional[th.Tensor] = None) -> th.Tensor:
         """``states`` [B, T+1, ...] (s_0 .. s_T, padded), ``actions`` [B, T] -> g for prefixes [B, T+1, z].
 
         Prefix t's output only depends on the first t transitions, so padding after a trajectory's
-        end never changes its valid prefixes.
+        end never changes its valid prefixes. With ``lengths`` [B] (transitions in each trajectory)
+        only g(tau_:length) is returned, [B, z]: the head then runs on those rows alone.
         """
         e = self.state_embed(states)  # embed each state once, shared by its two transitions
         x = self.transition(th.cat([e[:, :-1], self.action_embed(actions), e[:, 1:]], dim=-1))
         h, _ = self.lstm(x)
         h = th.cat([h.new_zeros(h.shape[0], 1, h.shape[2]), h], dim=1)
+        if lengths is not None:
+            h = h[th.arange(h.shape[0], device=h.device), lengths]
         return self.head(h)
 
 
