@@ -490,6 +490,14 @@ def test_bad_input():
         DREAM("MetaBandit-v0", batch_size=0)
     with pytest.raises(ValueError, match="env is required"):
         DREAM("DreamPolicy")
+    # each real-valued hyperparameter is named alone, whichever is wrong
+    for name in ("encoder_variance", "bottleneck_threshold", "bottleneck_weight", "max_grad_norm"):
+        with pytest.raises(ValueError, match=f"^{name} must be a number >= 0, got -1.0$"):
+            DREAM("MetaBandit-v0", **{name: -1.0})
+    with pytest.raises(ValueError, match=r"^encoder_variance must be a number >= 0, got nan$"):
+        DREAM("MetaBandit-v0", encoder_variance=float("nan"))
+    with pytest.raises(ValueError, match=r"^bottleneck_threshold must be a number >= 0, got '10'$"):
+        DREAM("MetaBandit-v0", bottleneck_threshold="10")
 
 
 @pytest.mark.slow

@@ -154,8 +154,12 @@ def test_bad_input_errors():
         RL2DQN(CueMemoryEnv(), sequence_length=0)
     with pytest.raises(ValueError, match="burn_in"):
         RL2DQN(CueMemoryEnv(), sequence_length=5, burn_in=5)
-    with pytest.raises(ValueError, match="td_loss"):
+    with pytest.raises(ValueError, match="td_loss='l1' is not valid; accepted values: 'mse', 'huber'"):
         RL2DQN(CueMemoryEnv(), td_loss="l1")
+    with pytest.raises(ValueError, match="max_grad_norm must be a number >= 0"):
+        RL2DQN(CueMemoryEnv(), max_grad_norm=-1)
+    with pytest.raises(ValueError, match=r"tau must be in \[0, 1\]"):
+        RL2DQN(CueMemoryEnv(), tau=2.0)
     with pytest.raises(ValueError, match="policy="):
         RL2DQN("MlpLstmPolicy", CueMemoryEnv())
     with pytest.raises(ValueError, match="CnnLstmPolicy needs an image"):

@@ -47,7 +47,7 @@ from stable_baselines3.common.utils import safe_mean
 from stable_baselines3.common.vec_env import VecEnv
 
 from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent, SingleTrialAgent
-from dream_envs.core import check_choice
+from dream_envs.core import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
@@ -223,12 +223,16 @@ class DREAM(TrialOffPolicyAlgorithm):
             ("eps_decay_steps", eps_decay_steps, 0),
             ("z_dim", z_dim, 1),
         ]:
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+            check_positive_int(name, value, minimum)
+        for name, value in [
+            ("encoder_variance", encoder_variance),
+            ("bottleneck_threshold", bottleneck_threshold),
+            ("bottleneck_weight", bottleneck_weight),
+            ("max_grad_norm", max_grad_norm),
+        ]:
+            check_non_negative(name, value)
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
-        if encoder_variance < 0 or bottleneck_threshold < 0 or bottleneck_weight < 0:
-            raise ValueError("encoder_variance, bottleneck_threshold and bottleneck_weight must be >= 0")
 
         super().__init__(
             policy,

@@ -22,7 +22,7 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve in gym.make)
-from dream_envs.core import BatchTrialAgent, ScriptedAgent, SingleTrialAgent
+from dream_envs.core import BatchTrialAgent, ScriptedAgent, SingleTrialAgent, check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
@@ -31,12 +31,6 @@ from sb3_dream.evaluation import PolicyBatchAgent
 from sb3_dream.rl2dqn.policies import CnnLstmPolicy, MultiInputLstmPolicy, RL2DQNPolicy, RL2QNetwork
 
 SelfRL2DQN = TypeVar("SelfRL2DQN", bound="RL2DQN")
-
-
-def _check_int(name: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 def recurrent_double_dqn_loss(
@@ -195,18 +189,20 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             )
         if env is None and _init_setup_model:
             raise ValueError("env is required: pass an env, a VecEnv or a registered env ID (e.g. 'MetaBus-v0')")
-        self.sequence_length = _check_int("sequence_length", sequence_length, 1)
-        self.burn_in = _check_int("burn_in", burn_in, 0)
+        self.sequence_length = check_positive_int("sequence_length", sequence_length, 1)
+        self.burn_in = check_positive_int("burn_in", burn_in, 0)
         if self.burn_in >= self.sequence_length:
             raise ValueError(f"burn_in must be smaller than sequence_length={sequence_length}, got {burn_in}")
-        if td_loss not in TD_LOSSES:
-            raise ValueError(f"td_loss={td_loss!r} is not valid; accepted values: {', '.join(map(repr, TD_LOSSES))}")
-        _check_int("buffer_size", buffer_size, 1)
-        _check_int("batch_size", batch_size, 1)
-        _check_int("learning_starts", learning_starts, 0)
-        _check_int("gradient_steps", gradient_steps, 0)
-        self.target_update_interval = _check_int("target_update_interval", target_update_interval, 1)
-        self.train_every = _check_int("train_freq", train_freq, 1)
+        check_choice("td_loss", td_loss, TD_LOSSES)
+        check_non_negative("max_grad_norm", max_grad_norm)
+        if check_non_negative("tau", tau) > 1:
+            raise ValueError(f"tau must be in [0, 1] (1: hard target updates), got {tau!r}")
+        check_positive_int("buffer_size", buffer_size, 1)
+        check_positive_int("batch_size", batch_size, 1)
+        check_positive_int("learning_starts", learning_starts, 0)
+        check_positive_int("gradient_steps", gradient_steps, 0)
+        self.target_update_interval = check_positive_int("target_update_interval", target_update_interval, 1)
+        self.train_every = check_positive_int("train_freq", train_freq, 1)
         if replay_buffer_class is not None and not issubclass(replay_buffer_class, SequenceReplayBuffer):
             raise ValueError("replay_buffer_class must be a subclass of sb3_dream.common.buffers.SequenceReplayBuffer")
 
@@ -244,7 +240,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         )
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
-        self.exploration_steps = _check_int("exploration_steps", exploration_steps, 0)
+        self.exploration_steps = check_positive_int("exploration_steps", exploration_steps, 0)
         self.exploration_schedule = LinearEpsilonSchedule(
             exploration_initial_eps, exploration_final_eps, exploration_steps
         )
