@@ -77,9 +77,8 @@ def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
 
 def check_non_negative(name: str, value: Any) -> float:
     """Raise a ``ValueError`` naming ``name`` unless ``value`` is a finite real number >= 0 (not a bool)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number >= 0, got {value!r}")
-    if not (np.isfinite(value) and value >= 0):
+    is_real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not (is_real and np.isfinite(value) and value >= 0):
         raise ValueError(f"{name} must be a number >= 0, got {value!r}")
     return float(value)
 

@@ -22,7 +22,14 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve in gym.make)
-from dream_envs.core import BatchTrialAgent, ScriptedAgent, SingleTrialAgent, check_choice, check_non_negative, check_positive_int
+from dream_envs.core import (
+    BatchTrialAgent,
+    ScriptedAgent,
+    SingleTrialAgent,
+    check_choice,
+    check_non_negative,
+    check_positive_int,
+)
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
