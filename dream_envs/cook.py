@@ -151,6 +151,35 @@ def object_at(x: int, y: int) -> int:
     return NO_OBJECT
 
 
+def fridge_picked(x: int, y: int, action: int) -> Optional[int]:
+    """The fridge that ``action`` picks from at position (x, y), or None (not a pickup at a fridge)."""
+    return y if action == PICKUP and object_at(x, y) == FRIDGE else None
+
+
+def first_openings(states: np.ndarray, actions: np.ndarray) -> List[Tuple[int, int]]:
+    """The (step, fridge) pairs at which an exploration trajectory (``states`` s_0.. with the
+    position first, ``actions`` a_0..) first picks from each fridge, in the order it opens them."""
+    opened: Dict[int, int] = {}
+    for t, action in enumerate(actions):
+        k = fridge_picked(int(states[t][0]), int(states[t][1]), int(action))
+        if k is not None and k not in opened:
+            opened[k] = t
+    return [(t, k) for k, t in opened.items()]
+
+
+def opening_rewards(
+    trajectories: Sequence[Tuple[np.ndarray, np.ndarray]], rewards: Sequence[np.ndarray]
+) -> Dict[Tuple[int, int], np.ndarray]:
+    """The reward of each fridge's first opening over exploration trajectories (states, actions)
+    and their per-step ``rewards`` (DREAM's: ``sb3_dream.dream.exploration_gains``), keyed by
+    (fridge, order): order j for the (j+1)-th fridge a trajectory opened. Sorted by key."""
+    found: Dict[Tuple[int, int], List[float]] = {}
+    for (states, actions), reward in zip(trajectories, rewards):
+        for order, (t, k) in enumerate(first_openings(states, actions)):
+            found.setdefault((k, order), []).append(float(reward[t]))
+    return {key: np.array(found[key]) for key in sorted(found)}
+
+
 def distance_to_fridge(k: int) -> int:
     """Steps from the pot to fridge ``k`` (Manhattan: the grid has no walls)."""
     return abs(FRIDGE_POS[k][0] - POT_POS[0]) + abs(FRIDGE_POS[k][1] - POT_POS[1])
@@ -612,7 +641,7 @@ class _CookRecorder(ScriptedAgent):
         action = self.agent.act(obs, info)
         x, y = int(obs["obs"][0]), int(obs["obs"][1])
         if int(obs["phase"]) == EXPLORATION:
-            if action == PICKUP and x == FRIDGE_POS[0][0]:
+            if fridge_picked(x, y, action) is not None:
                 self.opened.add(y)
         else:
             if int(obs["episode_start"]):
@@ -634,7 +663,7 @@ def _replay_execution(
         new_stage = recipe_stage(state[2], (state[3], state[4]), instruction)
         if second_pick == -1 and state[3] == instruction[0]:
             second_pick = 0  # A is in the pot (a wrong first drop ruins the dish and never gets here)
-        elif second_pick == 0 and action == PICKUP and state[0] == FRIDGE_POS[0][0]:
+        elif second_pick == 0 and fridge_picked(state[0], state[1], action) is not None:
             second_pick = state[2]
         undos += new_stage < stage
         stage = new_stage

@@ -8,6 +8,7 @@
     python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --split train --exploration
     python examples/meta_test.py --model snapshots/dream_seed0_*_steps.zip --exploration  # one line each
     python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --split train --trace 3
+    python examples/meta_test.py --model dream_cook.zip --env MetaCook-v0 --gains
 
 A meta-test trial: a held-out problem (``--split test``) the model never trained on; one
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
@@ -29,6 +30,12 @@ colored and gray routes ridden while exploring, whether it read the map
 (:func:`dream_envs.bus.exploration_report`). MetaCook-v0: fridges opened while exploring, and per
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
 stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
+
+``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials: the
+exploration reward of Equation 5 that each step of the greedy explorations earns from the model's
+current encoder and decoder, per step and, on MetaCook-v0, at each fridge's first opening by the
+order the fridges were opened in (:func:`dream_envs.cook.opening_rewards`): which steps pay the
+explorer, and how much.
 
 ``--trace K`` prints the actions of the first K trials' exploration episodes, by name where the
 env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
@@ -90,6 +97,12 @@ def main() -> None:
     )
     parser.add_argument(
         "--exploration", action="store_true", help="MetaBus-v0 and MetaCook-v0: what each agent explores and does"
+    )
+    parser.add_argument(
+        "--gains",
+        action="store_true",
+        help="DREAM: the exploration reward (Equation 5) of each step of its explorations; "
+        "MetaCook-v0: of each fridge's first opening",
     )
     parser.add_argument("--trace", type=int, default=0, metavar="K", help="print the first K explorations' actions")
     args = parser.parse_args()
@@ -170,6 +183,34 @@ def main() -> None:
                 "variance of f explained by each problem feature: "
                 + ", ".join(f"{v:.2f}" for v in d.f_variance_by_feature)
             )
+
+    if args.gains:
+        from dream_envs.cook import opening_rewards
+        from sb3_dream.dream import DREAM, exploration_gains
+
+        for path, model in models.items():
+            if not isinstance(model, DREAM):
+                raise SystemExit(f"--gains needs DREAM models, got {type(model).__name__} ({path})")
+            gains = exploration_gains(
+                model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
+            )
+            print(
+                f"  {names[path]} exploration reward per step (Equation 5, c = {gains.reward_penalty:g}; "
+                f"mean over the trials that took it): {' '.join(f'{r:+.2f}' for r in gains.by_step())}; "
+                f"information gain per trial {gains.information_gain().mean():.2f}"
+            )
+            if args.env == "MetaCook-v0":
+                openings = opening_rewards(gains.trajectories, gains.rewards)
+                ordinals = ("first", "second", "third")
+                print(
+                    f"  {names[path]} exploration reward of a fridge's first opening: "
+                    + "; ".join(
+                        f"fridge {k} opened {ordinals[order]} in {len(openings[k, order])} trials: "
+                        f"{openings[k, order].mean():+.2f}"
+                        for order, k in sorted((order, k) for k, order in openings)
+                    )
+                    + ("no fridge opened" if not openings else "")
+                )
 
 
 if __name__ == "__main__":

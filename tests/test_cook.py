@@ -25,13 +25,16 @@ from dream_envs.cook import (
     RIDE_BUS,
     RIGHT,
     RUINED,
+    START,
     UP,
     CookReport,
     MetaCookEnv,
     _replay_execution,
     behaviour_report,
     cook_transition,
+    first_openings,
     fridge_contents,
+    opening_rewards,
     optimal_execution_return,
     problem_id_of,
     recipe_stage,
@@ -630,3 +633,23 @@ def test_replay_execution_tells_what_was_fetched_once_the_first_ingredient_was_i
     assert _replay_execution(contents, recipe, [RIGHT, DOWN, PICKUP, UP, PICKUP]) == (1, 0, -1)  # A not in yet
     ruined = [RIGHT, DOWN, PICKUP, LEFT, UP, DROP, RIGHT, UP, PICKUP]  # 4 into the pot first
     assert _replay_execution(contents, recipe, ruined) == (-1, 1, -1)  # ruining the dish sets it back
+
+
+def test_first_openings_and_their_rewards():
+    # From the pot: right to fridge 1, pick twice, up to fridge 2, down twice to fridge 0, pick, back
+    # up to fridge 1 and pick again: fridges 1, 2 and 0 first opened at steps 1, 4 and 7.
+    actions = [RIGHT, PICKUP, PICKUP, UP, PICKUP, DOWN, DOWN, PICKUP, UP, PICKUP]
+    state, states = (*START, 0, 0, 0), []
+    for action in actions:
+        states.append(state)
+        state, _, _ = cook_transition(state, action, (4, 7, 6), None)
+    states = np.array(states + [state])
+    assert first_openings(states, np.array(actions)) == [(1, 1), (4, 2), (7, 0)]
+    assert first_openings(states[:4], np.array(actions[:3])) == [(1, 1)]  # repeated picks count once
+    assert first_openings(states[:1], np.array([], dtype=np.int64)) == []
+    # the reward of each first opening, keyed by (fridge, order), over two trajectories
+    rewards = np.arange(10.0)
+    trajectories = [(states, np.array(actions)), (states[:4], np.array(actions[:3]))]
+    found = opening_rewards(trajectories, [rewards, -rewards[:3]])
+    assert list(found) == [(0, 2), (1, 0), (2, 1)]  # sorted by fridge
+    assert found[1, 0].tolist() == [1.0, -1.0] and found[2, 1].tolist() == [4.0] and found[0, 2].tolist() == [7.0]

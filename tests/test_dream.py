@@ -12,7 +12,7 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from sb3_dream import DREAM, MetaEvalCallback
 from sb3_dream.dream.dream import EXECUTION_TARGET_Z
 from sb3_dream.dream.policies import DreamPolicy, TrajectoryDecoder
-from sb3_dream.evaluation import evaluate_meta
+from sb3_dream.evaluation import as_trial_agent, evaluate_meta
 
 FAST = dict(
     exploration_learning_starts=20,
@@ -550,6 +550,43 @@ def test_diagnose_side_by_side_is_diagnose_one_trial_at_a_time(bus_model):
     with pytest.raises(ValueError, match="explorers has 1 agents for 3 slots: pass one per slot"):
         PrivilegedBatchAgent(bus_model, ids, "g", explorers=[make_oracle(gym.make("MetaBus-v0"))]).reset(3)
 
+
+def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, monkeypatch):
+    from dream_envs.core import play_trials
+    from sb3_dream.dream import exploration_gains
+
+    ids = [3, 40, 3, 100, 7, 40]
+    c = bus_model.reward_penalty
+
+    def check_by_hand(gains) -> None:
+        """Equation 5 on each trajectory alone (the function pads them into one batch)."""
+        assert gains.problem_ids.tolist() == ids and gains.reward_penalty == c == 0.01
+        f = bus_model._encode(np.array(ids), noisy=False)
+        for k, ((states, actions), rewards) in enumerate(zip(gains.trajectories, gains.rewards)):
+            assert len(states) == len(actions) + 1 == len(rewards) + 1
+            with th.no_grad():
+                g = bus_model.policy.decoder(th.as_tensor(states[None]), th.as_tensor(actions[None]))[0].numpy()
+            d = ((f[k] - g) ** 2).sum(axis=1)
+            assert rewards == pytest.approx(d[:-1] - d[1:] - c, rel=1e-4, abs=1e-5)
+            assert gains.information_gain()[k] == pytest.approx(d[0] - d[-1], rel=1e-4, abs=1e-5)
+        by_step = gains.by_step()
+        assert len(by_step) == max(map(len, gains.rewards))
+        for t, mean in enumerate(by_step):  # over the trials that took step t
+            assert mean == pytest.approx(np.mean([r[t] for r in gains.rewards if len(r) > t]))
+
+    greedy = exploration_gains(bus_model, "MetaBus-v0", n_trials=6, seed=7, problem_ids=ids, n_envs=2)
+    check_by_hand(greedy)
+    # the trajectories are the greedy meta-test explorations of these trials
+    played = play_trials(gym.make("MetaBus-v0", split="test"), as_trial_agent(bus_model), 6, seed=7, problem_ids=ids)
+    assert [a.tolist() for _, a in greedy.trajectories] == [t["exploration_actions"] for t in played]
+    # Random actions end the explorations at different steps: the padded batch still gives each its own.
+    rng = np.random.default_rng(0)
+    monkeypatch.setattr(bus_model, "_epsilon_greedy", lambda greedy, eps, n: rng.integers(n, size=len(greedy)))
+    random = exploration_gains(bus_model, "MetaBus-v0", n_trials=6, seed=7, problem_ids=ids, n_envs=3)
+    assert len({len(r) for r in random.rewards}) > 1
+    check_by_hand(random)
+    with pytest.raises(TypeError, match="model"):
+        exploration_gains("not a model", "MetaBus-v0")
 
 def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):
     from sb3_dream.dream import diagnose

@@ -82,6 +82,19 @@ def test_watch_dream_writes_mp4_and_gif(trained, tmp_path):
         assert (tmp_path / "oracle.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
 
 
+def test_meta_test_gains_on_metacook_name_each_fridge_opening(tmp_path):
+    from sb3_dream import DREAM
+
+    # An untrained model: what its greedy explorer does matters not here, only the MetaCook report's form.
+    DREAM("MetaCook-v0", seed=0, buffer_size=200, execution_buffer_size=1000).save(tmp_path / "cook.zip")
+    out = run_example(
+        "meta_test.py", "--model", str(tmp_path / "cook.zip"), "--env", "MetaCook-v0", "--trials", "3", "--gains",
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert "DREAM exploration reward per step (Equation 5, c = 0.01; " in out
+    line = next(row for row in out.splitlines() if "exploration reward of a fridge's first opening: " in row)
+    assert line.endswith("no fridge opened") or " opened first in " in line
+
 def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     model, _ = trained
     out = run_example(
@@ -90,7 +103,10 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert "split=test (24 problems), 4 trials" in out
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
     diagnose_args = ["--model", str(model), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
-    out = run_example("meta_test.py", *diagnose_args, "--exploration", "--trace", "2", cwd=tmp_path)
+    out = run_example("meta_test.py", *diagnose_args, "--exploration", "--trace", "2", "--gains", cwd=tmp_path)
+    # --gains: Equation 5's reward of each exploration step, per step, and the trial's information gain
+    assert "DREAM exploration reward per step (Equation 5, c = 0.01; mean over the trials that took it): " in out
+    assert "; information gain per trial " in out and "first opening" not in out  # fridges: MetaCook only
     # --trace: each agent's first two explorations, by action name; the oracle reads the map.
     assert out.count("optimal (scripted) trial ") == 2 and out.count("DREAM trial ") == 2
     assert "optimal (scripted) trial 0, problem " in out and ": right right right down end\n" in out

@@ -1,8 +1,10 @@
 from sb3_dream.dream.diagnostics import (
     DreamDiagnosis,
+    ExplorationGains,
     PrivilegedAgent,
     PrivilegedBatchAgent,
     diagnose,
+    exploration_gains,
     f_variance_by_feature,
     trial_problem_ids,
 )
@@ -13,9 +15,11 @@ __all__ = [
     "DREAM",
     "DreamDiagnosis",
     "DreamPolicy",
+    "ExplorationGains",
     "PrivilegedAgent",
     "PrivilegedBatchAgent",
     "diagnose",
+    "exploration_gains",
     "f_variance_by_feature",
     "trial_problem_ids",
 ]

@@ -26,6 +26,13 @@ does not use what the optimal exploration shows either (it never learned to: a d
 on the exploration policy's own trajectories). ``decoder_error_optimal_exploration`` is its
 ||g - f(T)||^2. ``None`` for an env without a scripted oracle.
 
+:func:`exploration_gains` looks inside the exploration reward: the reward of Equation 5 that each
+step of the model's own explorations earns from its current f and g, as its training relabels them.
+Which steps pay (a fridge opened, a bus ridden) and how much says why an explorer prefers one route
+to another; a step that finds something yet earns little points at the decoder (it does not read
+that step) or at the encoder (f keeps little of what the step finds, see
+``f_variance_by_feature``).
+
 ``return_f_noisy`` runs the execution policy a third time, on z ~ N(f(T), rho^2 I): the code that
 half of its training (Equation 2's f branch) gives it. Well below ``return_f``, the bottleneck's
 noise hides much of the code from the execution policy (rho^2 per dimension against the spread
@@ -35,7 +42,7 @@ of f between problems). ``None`` without the noise (``bottleneck=False`` or rho^
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any, Dict, List, Optional, Sequence, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import gymnasium as gym
 import numpy as np
@@ -107,6 +114,7 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
         ids = np.asarray(problem_ids, dtype=np.int64)
         self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: Dict[int, np.ndarray] = {}  # trial -> g(tau^exp)
+        self.trajectories: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}  # trial -> (s_0..s_T, a_0..a_T-1)
         self._trials_started = 0
         super().__init__(model, deterministic=True)
 
@@ -134,6 +142,8 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
         for i in explored:
             k = int(self.trial[i])
             self.g[k] = self.state.z[i].copy()
+            n = int(self.state.length[i])
+            self.trajectories[k] = (self.state.states[i, : n + 1].copy(), self.state.actions[i, :n].copy())
             if self.z_source != "g":
                 self.state.z[i] = self.f[k % len(self.f)]
         if self.explorers is not None:
@@ -196,6 +206,27 @@ def trial_problem_ids(
     return np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
 
 
+def _privileged_trials(
+    model: DREAM,
+    env: Union[str, gym.Env],
+    n_trials: int,
+    split: str,
+    seed: int,
+    env_kwargs: Optional[Dict[str, Any]],
+    problem_ids: Optional[Sequence[int]],
+    n_envs: int,
+) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
+    """Checks the arguments of :func:`diagnose` and :func:`exploration_gains`, makes the envs and
+    draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial k's problem)."""
+    if not isinstance(model, DREAM):
+        raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
+    n_trials = check_positive_int("n_trials", n_trials)
+    n_envs = check_positive_int("n_envs", n_envs)
+    envs, made = _make_envs(env, split, 1, env_kwargs, min(n_envs, n_trials))  # the envs check ``split``
+    split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))
+    return envs, made, split_ids, trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+
+
 def diagnose(
     model: DREAM,
     env: Union[str, gym.Env],
@@ -216,14 +247,10 @@ def diagnose(
         played alone, a list of envs side by side, as in :func:`~sb3_dream.evaluation.evaluate_meta`).
         The same trials with any ``n_envs``, up to the rounding of batched matrix products.
     """
-    if not isinstance(model, DREAM):
-        raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
-    n_trials = check_positive_int("n_trials", n_trials)
-    n_envs = check_positive_int("n_envs", n_envs)
-    envs, made = _make_envs(env, split, 1, env_kwargs, min(n_envs, n_trials))  # the envs check ``split``
+    envs, made, split_ids, problem_ids = _privileged_trials(
+        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs
+    )
     trial_env = envs[0].unwrapped
-    split_ids = np.asarray(trial_env.problem_ids(split))
-    problem_ids = trial_problem_ids(split_ids, n_trials, seed, problem_ids)
 
     def play(agent: PrivilegedBatchAgent) -> Any:
         return evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
@@ -263,4 +290,65 @@ def diagnose(
         n_trials=n_trials,
         return_g_optimal_exploration=None if optimal is None else optimal.mean,
         decoder_error_optimal_exploration=None if optimal is None else decoder_error(agents["optimal_exploration"]),
+    )
+
+
+@dataclass
+class ExplorationGains:
+    """The exploration reward of every step of ``n`` greedy explorations (:func:`exploration_gains`)."""
+
+    problem_ids: np.ndarray  # [n] trial k's problem
+    trajectories: List[Tuple[np.ndarray, np.ndarray]]  # trial k's states s_0..s_T [T+1, ...] and actions [T]
+    rewards: List[np.ndarray]  # trial k's r_0..r_T-1 (Equation 5, the penalty c included) [T]
+    reward_penalty: float  # c
+
+    def by_step(self) -> np.ndarray:
+        """The mean reward of step t over the trials that took it [max T]."""
+        longest = max(len(r) for r in self.rewards)
+        padded = np.full((len(self.rewards), longest), np.nan)
+        for k, r in enumerate(self.rewards):
+            padded[k, : len(r)] = r
+        return np.nanmean(padded, axis=0)
+
+    def information_gain(self) -> np.ndarray:
+        """Per trial, the sum of r_t + c: ||f(T) - g(tau_:0)||^2 - ||f(T) - g(tau^exp)||^2 [n]."""
+        return np.array([float((r + self.reward_penalty).sum()) for r in self.rewards])
+
+
+@th.no_grad()
+def exploration_gains(
+    model: DREAM,
+    env: Union[str, gym.Env],
+    n_trials: int = 100,
+    split: str = "test",
+    seed: int = 0,
+    env_kwargs: Optional[Dict[str, Any]] = None,
+    problem_ids: Optional[Sequence[int]] = None,
+    n_envs: int = 16,
+) -> ExplorationGains:
+    """Play ``n_trials`` greedy meta-test trials of ``model`` (the trials :func:`diagnose` plays, with
+    the same arguments) and reward each exploration step as training relabels it (Equation 5):
+    r_t = ||f(T) - g(tau_:t)||^2 - ||f(T) - g(tau_:t+1)||^2 - c, with the model's current encoder
+    (no noise) and decoder. A diagnostic: it reads each trial's problem ID."""
+    envs, made, _, problem_ids = _privileged_trials(model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs)
+    agent = PrivilegedBatchAgent(model, problem_ids, "g", seed)
+    evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
+    for e in made:
+        e.close()
+    trajectories = [agent.trajectories[k] for k in sorted(agent.trajectories)]
+    lengths = np.array([len(actions) for _, actions in trajectories])
+    longest = int(lengths.max())
+    # one decoder pass over the padded batch: prefix t of a trajectory never reads its padding
+    states = np.zeros((len(trajectories), longest + 1, *trajectories[0][0].shape[1:]), trajectories[0][0].dtype)
+    actions = np.zeros((len(trajectories), longest), trajectories[0][1].dtype)
+    for k, (s, a) in enumerate(trajectories):
+        states[k, : len(s)], actions[k, : len(a)] = s, a
+    g = model.policy.decoder(model._obs_tensor(states), model._obs_tensor(actions))  # [n, T+1, z]
+    f = model.policy.encoder(model._obs_tensor(model.problem_table[problem_ids]))
+    rewards = model.exploration_rewards(g, f, th.as_tensor(lengths, device=model.device)).cpu().numpy()
+    return ExplorationGains(
+        problem_ids=problem_ids,
+        trajectories=trajectories,
+        rewards=[rewards[k, :n] for k, n in enumerate(lengths)],
+        reward_penalty=float(model.reward_penalty),
     )
