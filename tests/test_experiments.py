@@ -110,6 +110,10 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     diagnosis = info["diagnosis"]  # DREAM runs end with sb3_dream.dream.diagnose of the final model
     assert diagnosis["n_trials"] == 4 and 0 <= diagnosis["return_g"] <= 1 and 0 <= diagnosis["return_f"] <= 1
     assert 0 <= diagnosis["return_g_optimal_exploration"] <= 1 and diagnosis["decoder_error_optimal_exploration"] > 0
+    gains = info["exploration_gains"]  # ... and sb3_dream.dream.exploration_gains on the same trials
+    # MetaBandit explores for one step: the information gain of a trial is that step's reward plus c
+    assert len(gains["reward_by_step"]) == 1 and gains["reward_penalty"] == 0.01
+    assert gains["information_gain"] == pytest.approx(gains["reward_by_step"][0] + 0.01)
 
     with open(out / "summary.csv") as f:
         (row,) = list(csv.DictReader(f))
