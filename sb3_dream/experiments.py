@@ -36,7 +36,8 @@ its own checkpoints.
                                       (likewise _<split>.csv for any split the env offers, e.g.
                                       MetaCook's test_problems and test_instructions)
     <env>/<algo>_seed<k>.json         the run's settings and final numbers (DREAM: also the final
-                                      model's :func:`sb3_dream.dream.diagnose`)
+                                      model's :func:`sb3_dream.dream.diagnose` and
+                                      :func:`sb3_dream.dream.exploration_gains`)
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
     <env>/oracle_<split>.json         the env's scripted optimal agent on that split
     <env>/checkpoints/                each run's last checkpoint, with --checkpoint-freq
