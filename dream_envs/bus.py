@@ -424,6 +424,43 @@ def exploration_report(
     return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns, bus.variant, missed)
 
 
+DISCOVERIES = ("colored route", "gray route", "route again", "map", "other")
+
+
+def discovery_rewards(
+    env: MetaBusEnv,
+    trajectories: Sequence[Tuple[np.ndarray, np.ndarray]],
+    rewards: Sequence[np.ndarray],
+    problem_ids: Sequence[int],
+) -> Dict[str, np.ndarray]:
+    """The rewards of exploration steps by what they found, over trajectories (states, actions) of
+    ``problem_ids`` and their per-step ``rewards`` (DREAM's: ``sb3_dream.dream.exploration_gains``):
+    a ride on a colored or gray route not ridden before in the trajectory (from either end, as in
+    :class:`BusExplorationReport`), a ride on one ridden before ("route again"), the step onto the
+    map (map variant, its first time), and every other step. Keys in :data:`DISCOVERIES` order,
+    only those that occur."""
+    bus = env.unwrapped
+    if not isinstance(bus, MetaBusEnv):
+        raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
+    found: Dict[str, List[float]] = {kind: [] for kind in DISCOVERIES}
+    for (states, actions), reward, problem_id in zip(trajectories, rewards, problem_ids):
+        routes = bus.routes(int(problem_id))
+        stop_of = {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
+        ridden, map_read = set(), False
+        for t, action in enumerate(actions):
+            cell = (int(states[t][0]), int(states[t][1]))
+            if action == RIDE and int(states[t][2]) == BUS:
+                stop = stop_of[cell]
+                kind = "route again" if stop in ridden else "colored route" if stop in COLORED_STOPS else "gray route"
+                ridden.add(stop)
+            elif not map_read and len(states[t + 1]) > 3 and int(states[t + 1][3]) > 0:
+                kind, map_read = "map", True
+            else:
+                kind = "other"
+            found[kind].append(float(reward[t]))
+    return {kind: np.array(values) for kind, values in found.items() if values}
+
+
 def _step_towards(pos: Cell, target: Cell) -> int:
     """A move that brings ``pos`` one step closer to ``target`` (x first), or no-op if there."""
     if pos[0] != target[0]:

@@ -34,8 +34,9 @@ stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.beha
 ``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials: the
 exploration reward of Equation 5 that each step of the greedy explorations earns from the model's
 current encoder and decoder, per step and, on MetaCook-v0, at each fridge's first opening by the
-order the fridges were opened in (:func:`dream_envs.cook.opening_rewards`): which steps pay the
-explorer, and how much.
+order the fridges were opened in (:func:`dream_envs.cook.opening_rewards`), on MetaBus-v0 by what
+the step found: a colored or a gray route, a route ridden again, the map
+(:func:`dream_envs.bus.discovery_rewards`): which steps pay the explorer, and how much.
 
 ``--trace K`` prints the actions of the first K trials' exploration episodes, by name where the
 env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
@@ -102,7 +103,7 @@ def main() -> None:
         "--gains",
         action="store_true",
         help="DREAM: the exploration reward (Equation 5) of each step of its explorations; "
-        "MetaCook-v0: of each fridge's first opening",
+        "MetaCook-v0: of each fridge's first opening; MetaBus-v0: by what the step found",
     )
     parser.add_argument("--trace", type=int, default=0, metavar="K", help="print the first K explorations' actions")
     args = parser.parse_args()
@@ -185,6 +186,7 @@ def main() -> None:
             )
 
     if args.gains:
+        from dream_envs.bus import discovery_rewards
         from dream_envs.cook import opening_rewards
         from sb3_dream.dream import DREAM, exploration_gains
 
@@ -210,6 +212,12 @@ def main() -> None:
                         for order, k in sorted((order, k) for k, order in openings)
                     )
                     + ("no fridge opened" if not openings else "")
+                )
+            elif args.env == "MetaBus-v0":
+                found = discovery_rewards(env, gains.trajectories, gains.rewards, gains.problem_ids)
+                print(
+                    f"  {names[path]} exploration reward by what the step found: "
+                    + "; ".join(f"{kind} {r.mean():+.2f} ({len(r)} steps)" for kind, r in found.items())
                 )
 
 

@@ -33,6 +33,7 @@ from dream_envs.bus import (
     UP,
     BusExplorationReport,
     MetaBusEnv,
+    discovery_rewards,
     exploration_report,
 )
 
@@ -542,3 +543,27 @@ def test_render(variant: str):
     no_render = MetaBusEnv(variant=variant)
     no_render.reset(seed=0)
     assert no_render.render() is None
+
+
+def test_discovery_rewards_sort_exploration_steps_by_what_they_found():
+    def trajectory(env: MetaBusEnv, problem_id: int, actions: Sequence[int]):
+        obs, _ = env.reset(options={"problem_id": problem_id})
+        states = [obs["obs"]] + [step[0]["obs"] for step in run(env, actions)]
+        return np.array(states), np.array(actions)
+
+    # Distracting bus: up, right to a gray stop, ride there and back, left to a colored stop, ride.
+    env = make("distracting", split="all")
+    problem_id = 7 + 24 * 13
+    actions = [UP, RIGHT, RIDE, RIDE, LEFT, RIDE, NOOP]
+    rewards = np.arange(len(actions), dtype=float)
+    found = discovery_rewards(env, [trajectory(env, problem_id, actions)], [rewards], [problem_id])
+    assert list(found) == ["colored route", "gray route", "route again", "other"]
+    assert found["gray route"].tolist() == [2.0] and found["route again"].tolist() == [3.0]
+    assert found["colored route"].tolist() == [5.0] and found["other"].tolist() == [0.0, 1.0, 4.0, 6.0]
+    # Map: three steps right and one down reach the map; staying on it finds nothing more.
+    env = make("map")
+    actions = [RIGHT, RIGHT, RIGHT, DOWN, NOOP]
+    found = discovery_rewards(env, [trajectory(env, 5, actions)], [np.arange(5.0)], [5])
+    assert found == {"map": pytest.approx([3.0]), "other": pytest.approx([0.0, 1.0, 2.0, 4.0])}
+    with pytest.raises(ValueError, match="MetaBus-v0"):
+        discovery_rewards(gym.make("MetaBandit-v0"), [], [], [])

@@ -107,6 +107,8 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     # --gains: Equation 5's reward of each exploration step, per step, and the trial's information gain
     assert "DREAM exploration reward per step (Equation 5, c = 0.01; mean over the trials that took it): " in out
     assert "; information gain per trial " in out and "first opening" not in out  # fridges: MetaCook only
+    # ... and on MetaBus, by what each step found (the map variant: the map, and any other step)
+    assert "DREAM exploration reward by what the step found: " in out and " steps)" in out
     # --trace: each agent's first two explorations, by action name; the oracle reads the map.
     assert out.count("optimal (scripted) trial ") == 2 and out.count("DREAM trial ") == 2
     assert "optimal (scripted) trial 0, problem " in out and ": right right right down end\n" in out
