@@ -37,6 +37,8 @@ current encoder and decoder, per step and, on MetaCook-v0, at each fridge's firs
 order the fridges were opened in (:func:`dream_envs.cook.opening_rewards`), on MetaBus-v0 by what
 the step found: a colored or a gray route, a route ridden again, the map
 (:func:`dream_envs.bus.discovery_rewards`): which steps pay the explorer, and how much.
+``--gains-explorer oracle|random`` rewards the scripted optimal or a random agent's explorations
+instead: what the model's reward would pay for steps its own explorer does not take.
 
 ``--trace K`` prints the actions of the first K trials' exploration episodes, by name where the
 env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
@@ -50,6 +52,7 @@ in the order given, with the optimal and the random agent once.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import zipfile
@@ -104,6 +107,12 @@ def main() -> None:
         action="store_true",
         help="DREAM: the exploration reward (Equation 5) of each step of its explorations; "
         "MetaCook-v0: of each fridge's first opening; MetaBus-v0: by what the step found",
+    )
+    parser.add_argument(
+        "--gains-explorer",
+        default="model",
+        choices=("model", "oracle", "random"),
+        help="--gains: whose explorations the model's reward pays (default: its own)",
     )
     parser.add_argument("--trace", type=int, default=0, metavar="K", help="print the first K explorations' actions")
     args = parser.parse_args()
@@ -193,11 +202,18 @@ def main() -> None:
         for path, model in models.items():
             if not isinstance(model, DREAM):
                 raise SystemExit(f"--gains needs DREAM models, got {type(model).__name__} ({path})")
+            seeds = itertools.count(args.seed)  # one random explorer per env slot, each its own seed
+            explorer = {
+                "model": None,
+                "oracle": dream_envs.make_oracle,
+                "random": lambda e: RandomAgent(e.action_space, seed=next(seeds)),
+            }[args.gains_explorer]
             gains = exploration_gains(
-                model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
+                model, args.env, args.trials, args.split, args.seed, env_kwargs, problem_ids, explorer=explorer
             )
+            label = names[path] + ("" if explorer is None else f" ({args.gains_explorer} explorations)")
             print(
-                f"  {names[path]} exploration reward per step (Equation 5, c = {gains.reward_penalty:g}; "
+                f"  {label} exploration reward per step (Equation 5, c = {gains.reward_penalty:g}; "
                 f"mean over the trials that took it): {' '.join(f'{r:+.2f}' for r in gains.by_step())}; "
                 f"information gain per trial {gains.information_gain().mean():.2f}"
             )
@@ -205,7 +221,7 @@ def main() -> None:
                 openings = opening_rewards(gains.trajectories, gains.rewards)
                 ordinals = ("first", "second", "third")
                 print(
-                    f"  {names[path]} exploration reward of a fridge's first opening: "
+                    f"  {label} exploration reward of a fridge's first opening: "
                     + "; ".join(
                         f"fridge {k} opened {ordinals[order]} in {len(openings[k, order])} trials: "
                         f"{openings[k, order].mean():+.2f}"
@@ -216,7 +232,7 @@ def main() -> None:
             elif args.env == "MetaBus-v0":
                 found = discovery_rewards(env, gains.trajectories, gains.rewards, gains.problem_ids)
                 print(
-                    f"  {names[path]} exploration reward by what the step found: "
+                    f"  {label} exploration reward by what the step found: "
                     + "; ".join(f"{kind} {r.mean():+.2f} ({len(r)} steps)" for kind, r in found.items())
                 )
 

@@ -94,6 +94,14 @@ def test_meta_test_gains_on_metacook_name_each_fridge_opening(tmp_path):
     assert "DREAM exploration reward per step (Equation 5, c = 0.01; " in out
     line = next(row for row in out.splitlines() if "exploration reward of a fridge's first opening: " in row)
     assert line.endswith("no fridge opened") or " opened first in " in line
+    # the oracle's explorations, rewarded by the model: fridges 1, 0 and 2 in every trial, nearest first
+    out = run_example(
+        "meta_test.py", "--model", str(tmp_path / "cook.zip"), "--env", "MetaCook-v0", "--trials", "3", "--gains",
+        "--gains-explorer", "oracle", cwd=tmp_path,
+    )  # fmt: skip
+    assert "DREAM (oracle explorations) exploration reward per step" in out
+    assert "fridge 1 opened first in 3 trials: " in out and "fridge 0 opened second in 3 trials: " in out
+    assert "fridge 2 opened third in 3 trials: " in out
 
 def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     model, _ = trained

@@ -42,7 +42,7 @@ of f between problems). ``None`` without the noise (``bottleneck=False`` or rho^
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import gymnasium as gym
 import numpy as np
@@ -325,13 +325,20 @@ def exploration_gains(
     env_kwargs: Optional[Dict[str, Any]] = None,
     problem_ids: Optional[Sequence[int]] = None,
     n_envs: int = 16,
+    explorer: Optional[Callable[[gym.Env], ScriptedAgent]] = None,
 ) -> ExplorationGains:
     """Play ``n_trials`` greedy meta-test trials of ``model`` (the trials :func:`diagnose` plays, with
     the same arguments) and reward each exploration step as training relabels it (Equation 5):
     r_t = ||f(T) - g(tau_:t)||^2 - ||f(T) - g(tau_:t+1)||^2 - c, with the model's current encoder
-    (no noise) and decoder. A diagnostic: it reads each trial's problem ID."""
+    (no noise) and decoder. A diagnostic: it reads each trial's problem ID.
+
+    :param explorer: makes a scripted explorer for an env (e.g. ``dream_envs.make_oracle``, or a
+        random agent): its explorations instead of the model's, rewarded by the model's f and g
+        (what the model's reward would pay for steps its own explorer does not take).
+    """
     envs, made, _, problem_ids = _privileged_trials(model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs)
-    agent = PrivilegedBatchAgent(model, problem_ids, "g", seed)
+    explorers = None if explorer is None else [explorer(e) for e in envs]
+    agent = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
     evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
     for e in made:
         e.close()
