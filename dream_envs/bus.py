@@ -383,7 +383,17 @@ class _ExplorationRecorder(ScriptedAgent):
         return action
 
     def _note_map(self, state: np.ndarray) -> None:
-        self.read_map |= len(state) > 3 and int(state[3]) > 0
+        self.read_map |= _shows_map(state)
+
+
+def _shows_map(state: np.ndarray) -> bool:
+    """Whether an inner state shows the map (map variant: its fourth dimension, on the map)."""
+    return len(state) > 3 and int(state[3]) > 0
+
+
+def _stop_of(routes: Dict[Cell, Cell]) -> Dict[Cell, Cell]:
+    """Each bus cell's route, named by its stop: riding from either end sees the same route."""
+    return {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
 
 
 def exploration_report(
@@ -407,8 +417,7 @@ def exploration_report(
     missed_return = STEP_REWARD * bus.horizon  # every step's cost, no goal reward
     rows = []
     for result in play_trials(env, recorder, n_trials, seed, problem_ids):
-        routes = bus.routes(int(result["problem_id"]))
-        stop_of = {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
+        stop_of = _stop_of(bus.routes(int(result["problem_id"])))
         seen = {stop_of[cell] for cell in recorder.rides}
         rows.append(
             (
@@ -444,8 +453,7 @@ def discovery_rewards(
         raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
     found: Dict[str, List[float]] = {kind: [] for kind in DISCOVERIES}
     for (states, actions), reward, problem_id in zip(trajectories, rewards, problem_ids):
-        routes = bus.routes(int(problem_id))
-        stop_of = {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
+        stop_of = _stop_of(bus.routes(int(problem_id)))
         ridden, map_read = set(), False
         for t, action in enumerate(actions):
             cell = (int(states[t][0]), int(states[t][1]))
@@ -453,7 +461,7 @@ def discovery_rewards(
                 stop = stop_of[cell]
                 kind = "route again" if stop in ridden else "colored route" if stop in COLORED_STOPS else "gray route"
                 ridden.add(stop)
-            elif not map_read and len(states[t + 1]) > 3 and int(states[t + 1][3]) > 0:
+            elif not map_read and _shows_map(states[t + 1]):
                 kind, map_read = "map", True
             else:
                 kind = "other"
