@@ -615,14 +615,14 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
     if best is not None and best.best_env_steps is not None:
         info["best"] = _meta_test_best(run, config, best, tag)
     if run.algo in DREAM_ALGOS:
-        from sb3_dream.dream import diagnose, exploration_gains
+        from sb3_dream.dream import diagnose
 
         # Which side limits the final model: meta-test vs the execution policy given z = f(T)
         # (and vs the decoder reading the env's optimal exploration).
         diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
         info["diagnosis"] = diagnosis.as_dict()
         # What its explorer is paid for, step by step (Equation 5), on the same trials.
-        gains = exploration_gains(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
+        gains = diagnosis.exploration_gains
         info["exploration_gains"] = {
             "reward_by_step": gains.by_step().tolist(),
             "information_gain": float(gains.information_gain().mean()),

@@ -577,8 +577,17 @@ def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, m
     greedy = exploration_gains(bus_model, "MetaBus-v0", n_trials=6, seed=7, problem_ids=ids, n_envs=2)
     check_by_hand(greedy)
     # the trajectories are the greedy meta-test explorations of these trials
-    played = play_trials(gym.make("MetaBus-v0", split="test"), as_trial_agent(bus_model), 6, seed=7, problem_ids=ids)
+    test_env = gym.make("MetaBus-v0", split="test")
+    played = list(play_trials(test_env, as_trial_agent(bus_model), 6, seed=7, problem_ids=ids))
     assert [a.tolist() for _, a in greedy.trajectories] == [t["exploration_actions"] for t in played]
+    # diagnose() rewards its own z = g trials: the same trials, the same rewards, played once
+    from sb3_dream.dream import diagnose
+
+    diagnosed = diagnose(bus_model, "MetaBus-v0", n_trials=6, seed=7, problem_ids=ids, n_envs=2).exploration_gains
+    check_by_hand(diagnosed)
+    assert [a.tolist() for _, a in diagnosed.trajectories] == [t["exploration_actions"] for t in played]
+    for ours, theirs in zip(diagnosed.rewards, greedy.rewards):
+        assert ours == pytest.approx(theirs, rel=1e-5, abs=1e-6)
     # With a scripted explorer its explorations are rewarded instead (here the env's oracle).
     from dream_envs import make_oracle
 
@@ -595,6 +604,7 @@ def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, m
     check_by_hand(random)
     with pytest.raises(TypeError, match="model"):
         exploration_gains("not a model", "MetaBus-v0")
+
 
 def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_model, monkeypatch):
     from sb3_dream.dream import diagnose

@@ -41,7 +41,7 @@ of f between problems). ``None`` without the noise (``bottleneck=False`` or rho^
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import gymnasium as gym
@@ -70,9 +70,13 @@ class DreamDiagnosis:
     # the env's scripted optimal explorer, then z = g of its trajectory; None without an oracle
     return_g_optimal_exploration: Optional[float] = None
     decoder_error_optimal_exploration: Optional[float] = None
+    # the exploration reward of every step of the z = g trials (what exploration_gains() computes for
+    # the same trials, without playing them again); not part of as_dict()
+    exploration_gains: Optional["ExplorationGains"] = field(default=None, repr=False, compare=False)
 
     def as_dict(self) -> Dict[str, Any]:
-        return asdict(self)
+        """The scalar results (JSON-ready): every field but ``exploration_gains``."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "exploration_gains"}
 
     def returns_text(self) -> str:
         """The three returns in words, for logs."""
@@ -239,7 +243,8 @@ def diagnose(
 ) -> DreamDiagnosis:
     """Meta-test ``model`` on the same ``n_trials`` trials of ``split`` with z = g(tau^exp), with
     z = f(T) and (if the model's encoder is noisy) with z ~ N(f(T), rho^2 I); see the module
-    docstring for how to read the result.
+    docstring for how to read the result. Its ``exploration_gains`` rewards the z = g trials'
+    exploration steps (Equation 5), as :func:`exploration_gains` with the same arguments does.
 
     :param problem_ids: trial k's problem is ``problem_ids[k % len(problem_ids)]``; by default
         problems are drawn uniformly from ``split`` with ``seed``.
@@ -290,6 +295,7 @@ def diagnose(
         n_trials=n_trials,
         return_g_optimal_exploration=None if optimal is None else optimal.mean,
         decoder_error_optimal_exploration=None if optimal is None else decoder_error(agents["optimal_exploration"]),
+        exploration_gains=_rewarded(model, problem_ids, agents["g"]),
     )
 
 
@@ -342,6 +348,13 @@ def exploration_gains(
     evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
     for e in made:
         e.close()
+    return _rewarded(model, problem_ids, agent)
+
+
+@th.no_grad()
+def _rewarded(model: DREAM, problem_ids: np.ndarray, agent: PrivilegedBatchAgent) -> ExplorationGains:
+    """Equation 5's reward of every exploration step of the trials ``agent`` played (trial k's
+    problem ``problem_ids[k]``), from the model's current f and g."""
     trajectories = [agent.trajectories[k] for k in sorted(agent.trajectories)]
     lengths = np.array([len(actions) for _, actions in trajectories])
     longest = int(lengths.max())
