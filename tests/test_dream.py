@@ -593,8 +593,7 @@ def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, m
 
     guided = exploration_gains(bus_model, "MetaBus-v0", 6, seed=7, problem_ids=ids, n_envs=2, explorer=make_oracle)
     check_by_hand(guided)
-    env = gym.make("MetaBus-v0", split="test")
-    oracle_played = play_trials(env, make_oracle(env), 6, seed=7, problem_ids=ids)
+    oracle_played = play_trials(test_env, make_oracle(test_env), 6, seed=7, problem_ids=ids)
     assert [a.tolist() for _, a in guided.trajectories] == [t["exploration_actions"] for t in oracle_played]
     # Random actions end the explorations at different steps: the padded batch still gives each its own.
     rng = np.random.default_rng(0)

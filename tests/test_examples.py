@@ -103,6 +103,7 @@ def test_meta_test_gains_on_metacook_name_each_fridge_opening(tmp_path):
     assert "fridge 1 opened first in 3 trials: " in out and "fridge 0 opened second in 3 trials: " in out
     assert "fridge 2 opened third in 3 trials: " in out
 
+
 def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     model, _ = trained
     out = run_example(
