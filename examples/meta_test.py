@@ -93,7 +93,14 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--n-exec-episodes", type=int, default=1)
     parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="trial k is seeded SEED + k, so seeds fewer than --trials apart replay some of the same trials "
+        "(0 and 1: all but one); for a draw of its own take e.g. --seed 1000. --diagnose draws its "
+        "problems from SEED another way (sb3_dream.dream.trial_problem_ids)",
+    )
     parser.add_argument(
         "--diagnose",
         action="store_true",
