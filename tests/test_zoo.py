@@ -193,7 +193,7 @@ def test_zoo_trains_with_the_measured_settings(tmp_path, capsys):
     out = capsys.readouterr().out
     assert str(hyperparams_path("dream", "measured")) in out and "('n_envs', 4)" in out
     model = DREAM.load(logs / "dream" / "MetaCook-v0_1" / "MetaCook-v0.zip")
-    assert model.n_envs == 4 and model.reward_penalty == 0.1 and model.eps_decay_steps == 30_000
+    assert model.n_envs == 4 and model.reward_penalty == 0.01 and model.eps_decay_steps == 30_000
     assert model.policy.execution_hidden_sizes == (256, 256) and not model.policy.execution_instruction_mlp
 
 
