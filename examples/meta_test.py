@@ -31,7 +31,8 @@ colored and gray routes ridden while exploring, whether it read the map
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
 stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
 
-``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials: the
+``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials (with
+``--diagnose``, on the trials diagnose already played, not a second time): the
 exploration reward of Equation 5 that each step of the greedy explorations earns from the model's
 current encoder and decoder, per step and, on MetaCook-v0, at each fridge's first opening by the
 order the fridges were opened in (:func:`dream_envs.cook.opening_rewards`), on MetaBus-v0 by what
@@ -178,13 +179,14 @@ def main() -> None:
                 if isinstance(model, DREAM):
                     report = reports[args.env](env, PrivilegedAgent(model, ids), args.trials, args.seed, ids)
                     print(f"  {name:>20} with z = f(T): {report.summary()}")
+    diagnoses = {}  # path -> DreamDiagnosis, whose z = g trials --gains reuses
     if args.diagnose:
         from sb3_dream.dream import DREAM, diagnose
 
         for path, model in models.items():
             if not isinstance(model, DREAM):
                 raise SystemExit(f"--diagnose needs DREAM models, got {type(model).__name__} ({path})")
-            d = diagnose(  # one execution episode per trial
+            d = diagnoses[path] = diagnose(  # one execution episode per trial
                 model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
             )
             prefix = "" if len(models) == 1 else f"{path} "
@@ -215,9 +217,12 @@ def main() -> None:
                 "oracle": dream_envs.make_oracle,
                 "random": lambda e: RandomAgent(e.action_space, seed=next(seeds)),
             }[args.gains_explorer]
-            gains = exploration_gains(
-                model, args.env, args.trials, args.split, args.seed, env_kwargs, problem_ids, explorer=explorer
-            )
+            if explorer is None and path in diagnoses:  # the same trials, already played by diagnose
+                gains = diagnoses[path].exploration_gains
+            else:
+                gains = exploration_gains(
+                    model, args.env, args.trials, args.split, args.seed, env_kwargs, problem_ids, explorer=explorer
+                )
             label = names[path] + ("" if explorer is None else f" ({args.gains_explorer} explorations)")
             print(
                 f"  {label} exploration reward per step (Equation 5, c = {gains.reward_penalty:g}; "
