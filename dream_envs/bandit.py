@@ -73,8 +73,8 @@ class MetaBanditEnv(TrialEnv):
     def _split_problem_ids(self, split: str) -> np.ndarray:
         return np.arange(self._n_problems)
 
-    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
-        return np.array([1])
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
+        return np.array([[1]])
 
     def solution(self, problem_id: int) -> list[int]:
         """The problem's rewarding action sequence (digits of the ID in base |A|, least significant first)."""

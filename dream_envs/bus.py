@@ -143,9 +143,9 @@ class MetaBusEnv(TrialEnv):
         gray = list(PERMUTATIONS[problem_id // n]) if self.variant == "distracting" else []
         return np.array([problem_id % n, *gray], dtype=np.int64)
 
-    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
         # Every goal is valid in every problem and split: generalisation is over problems only.
-        return np.array([1 + int(self.np_random.integers(len(GOALS)))])
+        return np.arange(1, len(GOALS) + 1).reshape(-1, 1)
 
     def routes(self, problem_id: int) -> Dict[Cell, Cell]:
         """Where each bus stop of problem ``problem_id`` leads (colored stops first, then gray ones)."""
@@ -402,13 +402,15 @@ def exploration_report(
     n_trials: int = 100,
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
+    instructions: Optional[Sequence[Any]] = None,
 ) -> BusExplorationReport:
     """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration.
 
     The problem ID is read from the env's ``info`` after each trial, to resolve which routes the
     rides revealed; the agent never sees it. ``problem_ids`` pins trial k to
-    ``problem_ids[k % len(problem_ids)]``.
+    ``problem_ids[k % len(problem_ids)]``, and ``instructions`` (one per problem ID) its
+    execution episodes' instruction likewise.
     """
     bus = env.unwrapped
     if not isinstance(bus, MetaBusEnv):
@@ -416,7 +418,7 @@ def exploration_report(
     recorder = _ExplorationRecorder(agent)
     missed_return = STEP_REWARD * bus.horizon  # every step's cost, no goal reward
     rows = []
-    for result in play_trials(env, recorder, n_trials, seed, problem_ids):
+    for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
         stop_of = _stop_of(bus.routes(int(result["problem_id"])))
         seen = {stop_of[cell] for cell in recorder.rides}
         rows.append(

@@ -369,10 +369,9 @@ class MetaCookEnv(TrialEnv):
         split = self.split if split is None else check_choice("split", split, self.splits)
         return list(_split_tables()[split][1].get(int(problem_id), ()))
 
-    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
         # A problem pinned outside the split has no recipe of it: fall back to all its recipes.
-        choices = self.instructions(problem_id, split) or valid_instructions(problem_id)
-        return np.array(choices[int(self.np_random.integers(len(choices)))], dtype=np.int64)
+        return np.array(self.instructions(problem_id, split) or valid_instructions(problem_id), dtype=np.int64)
 
     def _check_instruction(self, problem_id: int, instruction: np.ndarray) -> None:
         present = sorted(set(fridge_contents(problem_id)))
@@ -676,20 +675,22 @@ def behaviour_report(
     n_trials: int = 100,
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
+    instructions: Optional[Sequence[Any]] = None,
 ) -> CookReport:
     """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration and execution.
 
     The problem ID is read from the env's ``info`` after each trial, to replay the execution
     episodes through :func:`cook_transition`; the agent never sees it. ``problem_ids`` pins trial k
-    to ``problem_ids[k % len(problem_ids)]``.
+    to ``problem_ids[k % len(problem_ids)]``, and ``instructions`` (one per problem ID) its
+    execution episodes' instruction likewise.
     """
     cook = env.unwrapped
     if not isinstance(cook, MetaCookEnv):
         raise ValueError(f"env must be a MetaCook-v0 env, got {type(cook).__name__}")
     recorder = _CookRecorder(agent)
     opened, lengths, episodes = [], [], []
-    for result in play_trials(env, recorder, n_trials, seed, problem_ids):
+    for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
         problem_id = int(result["problem_id"])
         contents = fridge_contents(problem_id)
         opened.append(len(recorder.opened))

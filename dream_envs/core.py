@@ -8,8 +8,9 @@ rewards R_T(s, i). ``terminated`` ends the trial.
 A new meta-RL environment subclasses :class:`TrialEnv` and defines the problem family:
 
 * the problem set and its splits: :meth:`TrialEnv._split_problem_ids`;
-* the instruction distribution of a problem: :meth:`TrialEnv._sample_instruction`
-  (and, optionally, :meth:`TrialEnv._check_instruction` for pinned instructions);
+* the instructions of a problem: :meth:`TrialEnv._instruction_choices`, drawn uniformly (or
+  another distribution: :meth:`TrialEnv._sample_instruction`), and optionally
+  :meth:`TrialEnv._check_instruction` for pinned instructions;
 * the inner MDP given (problem, instruction): :meth:`TrialEnv._set_problem`,
   :meth:`TrialEnv._inner_reset`, :meth:`TrialEnv._inner_step` and optionally
   :meth:`TrialEnv._end_episode_reward`;
@@ -164,9 +165,20 @@ class TrialEnv(gym.Env, ABC):
     def _split_problem_ids(self, split: str) -> np.ndarray:
         """The sorted problem IDs of ``split`` (one of :attr:`splits`)."""
 
-    @abstractmethod
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
+        """``[n, len(instruction_nvec)]``: the instructions of ``problem_id`` in ``split``, which
+        :meth:`_sample_instruction` draws uniformly. A family defines this, or overrides
+        :meth:`_sample_instruction` for another distribution (it then cannot be evaluated
+        exhaustively, see :meth:`trial_cases`)."""
+        raise NotImplementedError(
+            f"{type(self).__name__} does not list its instructions: define _instruction_choices(problem_id, split)"
+        )
+
     def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
-        """Draw an instruction for ``problem_id`` with ``self.np_random`` (respecting held-out ones)."""
+        """Draw an instruction for ``problem_id`` with ``self.np_random`` (respecting held-out ones):
+        uniformly among :meth:`_instruction_choices` (no draw when there is one)."""
+        choices = self._instruction_choices(problem_id, split)
+        return choices[int(self.np_random.integers(len(choices)))] if len(choices) > 1 else choices[0]
 
     def _check_instruction(self, problem_id: int, instruction: np.ndarray) -> None:
         """Raise ``ValueError`` if a pinned ``instruction`` is not valid for ``problem_id``."""
@@ -219,6 +231,38 @@ class TrialEnv(gym.Env, ABC):
         """The problem IDs of ``split`` (default: this env's split)."""
         split = self.split if split is None else check_choice("split", split, self.splits)
         return np.asarray(self._split_problem_ids(split), dtype=np.int64)
+
+    def instruction_choices(self, problem_id: int, split: Optional[str] = None) -> np.ndarray:
+        """``[n, len(instruction_nvec)]``: the instructions a trial of ``problem_id`` in ``split``
+        (default: this env's split) draws uniformly for each execution episode."""
+        split = self.split if split is None else check_choice("split", split, self.splits)
+        return np.asarray(self._instruction_choices(int(problem_id), split), dtype=np.int64).reshape(
+            -1, len(self.instruction_nvec)
+        )
+
+    def trial_cases(self, split: Optional[str] = None) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every (problem, instruction) pair a trial of ``split`` (default: this env's split) can
+        start with, and its probability: ``(problem_ids [n], instructions [n, d], probabilities [n])``.
+
+        A problem is drawn uniformly from the split, then an instruction uniformly from the
+        problem's, so a pair's probability is ``1 / (n_problems_in_split * n_its_instructions)``.
+        Playing each pair pinned (``reset(options={"problem_id": k, "instruction": i})``) and
+        weighting by these probabilities gives the split's expected return without the noise of
+        drawing problems (:func:`sb3_dream.evaluate_meta` with ``exhaustive=True``).
+        """
+        split = self.split if split is None else check_choice("split", split, self.splits)
+        problem_ids = self.problem_ids(split)
+        pids, instructions, probabilities = [], [], []
+        for k in problem_ids:
+            choices = self.instruction_choices(int(k), split)
+            pids.extend([int(k)] * len(choices))
+            instructions.append(choices)
+            probabilities.extend([1.0 / (len(problem_ids) * len(choices))] * len(choices))
+        return (
+            np.asarray(pids, dtype=np.int64),
+            np.concatenate(instructions).astype(np.int64),
+            np.asarray(probabilities, dtype=np.float64),
+        )
 
     @property
     def phase(self) -> int:
@@ -483,15 +527,26 @@ def play_trial(
     return record.finish(info)
 
 
-def _trial_options(k: int, problem_ids: Optional[Sequence[int]]) -> Optional[Dict[str, Any]]:
-    """``reset`` options of trial k: pinned to ``problem_ids[k % len(problem_ids)]`` if given."""
-    return None if problem_ids is None else {"problem_id": int(problem_ids[k % len(problem_ids)])}
+def _trial_options(
+    k: int, problem_ids: Optional[Sequence[int]], instructions: Optional[Sequence[Any]] = None
+) -> Optional[Dict[str, Any]]:
+    """``reset`` options of trial k: pinned to ``problem_ids[k % len(problem_ids)]`` if given, and
+    then to ``instructions[k % len(problem_ids)]`` if given."""
+    if problem_ids is None:
+        return None
+    j = k % len(problem_ids)
+    options: Dict[str, Any] = {"problem_id": int(problem_ids[j])}
+    if instructions is not None:
+        options["instruction"] = np.asarray(instructions[j], dtype=np.int64)
+    return options
 
 
-def _check_trials(n_trials: int, problem_ids: Optional[Sequence[int]]) -> int:
+def _check_trials(n_trials: int, problem_ids: Optional[Sequence[int]], instructions: Optional[Sequence[Any]]) -> int:
     n_trials = check_positive_int("n_trials", n_trials)
     if problem_ids is not None and len(problem_ids) == 0:
         raise ValueError("problem_ids must not be empty")
+    if instructions is not None and (problem_ids is None or len(instructions) != len(problem_ids)):
+        raise ValueError("instructions must come with problem_ids, one instruction per problem ID")
     return n_trials
 
 
@@ -501,14 +556,17 @@ def play_trials(
     n_trials: int,
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
+    instructions: Optional[Sequence[Any]] = None,
 ) -> Iterator[Dict[str, Any]]:
     """:func:`play_trial` ``n_trials`` times, trial k seeded ``seed + k``; with ``problem_ids``,
-    trial k is pinned to ``problem_ids[k % len(problem_ids)]``. Arguments are checked at the call."""
-    n_trials = _check_trials(n_trials, problem_ids)
+    trial k is pinned to ``problem_ids[k % len(problem_ids)]``, and with ``instructions`` (one per
+    problem ID) every execution episode of it to ``instructions[k % len(problem_ids)]``.
+    Arguments are checked at the call."""
+    n_trials = _check_trials(n_trials, problem_ids, instructions)
 
     def trials() -> Iterator[Dict[str, Any]]:
         for k in range(n_trials):
-            yield play_trial(env, agent, seed=seed + k, options=_trial_options(k, problem_ids))
+            yield play_trial(env, agent, seed=seed + k, options=_trial_options(k, problem_ids, instructions))
 
     return trials()
 
@@ -519,6 +577,7 @@ def play_trials_batched(
     n_trials: int,
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
+    instructions: Optional[Sequence[Any]] = None,
 ) -> List[Dict[str, Any]]:
     """The same trials as :func:`play_trials` (trial k seeded ``seed + k``, pinned likewise), played
     side by side in ``envs`` (copies of one trial env) by a :class:`BatchTrialAgent`: each env
@@ -527,7 +586,7 @@ def play_trials_batched(
     With an agent that acts on each trial alone (a trained model acting greedily), every trial's
     result is the one :func:`play_trials` gives, up to the rounding of batched matrix products.
     """
-    n_trials = _check_trials(n_trials, problem_ids)
+    n_trials = _check_trials(n_trials, problem_ids, instructions)
     if len(envs) == 0:
         raise ValueError("envs must not be empty")
     n_envs = min(len(envs), n_trials)
@@ -542,7 +601,7 @@ def play_trials_batched(
     def start(i: int) -> None:
         nonlocal next_trial
         trial[i] = next_trial
-        obs[i], info = envs[i].reset(seed=seed + next_trial, options=_trial_options(next_trial, problem_ids))
+        obs[i], info = envs[i].reset(seed=seed + next_trial, options=_trial_options(next_trial, problem_ids, instructions))
         records[i], infos[i] = _TrialRecord(info), public_info(info)
         next_trial += 1
 

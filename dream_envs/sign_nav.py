@@ -346,8 +346,8 @@ class SignNav3DEnv(TrialEnv):
     def _split_problem_ids(self, split: str) -> np.ndarray:
         return np.arange(len(SIGN_COLOURS))  # nothing held out: every split is both problems
 
-    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
-        return np.array([self.np_random.integers(1, len(OBJECT_TYPES) + 1)])
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
+        return np.arange(1, len(OBJECT_TYPES) + 1).reshape(-1, 1)
 
     def _set_problem(self, problem_id: int) -> None:
         self._world.sign.shown = problem_id

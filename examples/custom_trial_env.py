@@ -6,7 +6,7 @@
 about 80 lines: a :class:`dream_envs.TrialEnv` subclass defines only
 
 * the problems and their splits (``n_problems``, ``_split_problem_ids``),
-* the instructions (``_sample_instruction``),
+* the instructions (``_instruction_choices``, drawn uniformly),
 * the inner MDP of a problem (``_set_problem``, ``_inner_reset``, ``_inner_step``) and a picture
   (``_render_frame``),
 
@@ -94,8 +94,8 @@ class SignCorridorEnv(TrialEnv):
     def _split_problem_ids(self, split: str) -> np.ndarray:
         return np.arange(self.n_codes)
 
-    def _sample_instruction(self, problem_id: int, split: str) -> np.ndarray:
-        return np.array([1])
+    def _instruction_choices(self, problem_id: int, split: str) -> np.ndarray:
+        return np.array([[1]])  # one instruction ("say the code"), drawn uniformly like any list
 
     def _set_problem(self, problem_id: int) -> None:
         self._code = problem_id

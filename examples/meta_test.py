@@ -14,8 +14,11 @@ A meta-test trial: a held-out problem (``--split test``) the model never trained
 reward-free exploration episode; then ``--n-exec-episodes`` execution episodes, each with an
 instruction. The score is the mean execution return per episode, with a 95% confidence interval
 over trials. The problem ID never reaches the model: it sees observations only (DREAM also the
-exploration's last state from ``info["final_obs"]``). ``--exhaustive`` cycles through every
-problem of the split instead of drawing them.
+exploration's last state from ``info["final_obs"]``). ``--exhaustive`` plays every (problem,
+instruction) pair of the split instead of drawing trials, in whole passes of at least ``--trials``
+trials, and weights each pair by its probability under the split's sampling: the split's expected
+return, exact for a greedy model (the envs are deterministic once the pair is pinned; SignNav3D's
+start is not). Every other report then plays the same pairs, unweighted.
 
 ``--diagnose`` (DREAM only) also runs :func:`sb3_dream.dream.diagnose`: the same trials once more
 with the execution policy given the privileged z = f(T), to tell whether exploration (and the
@@ -63,7 +66,7 @@ import gymnasium as gym
 
 import dream_envs
 from dream_envs import RandomAgent, play_trials
-from sb3_dream.evaluation import as_trial_agent, evaluate_meta
+from sb3_dream.evaluation import as_trial_agent, evaluate_meta, exhaustive_cases
 from sb3_dream.experiments import parse_kwargs
 
 
@@ -93,7 +96,12 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=dream_envs.all_splits(), help="test = held-out problems")
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--n-exec-episodes", type=int, default=1)
-    parser.add_argument("--exhaustive", action="store_true", help="pin trial k to the split's k-th problem (cycling)")
+    parser.add_argument(
+        "--exhaustive",
+        action="store_true",
+        help="play every (problem, instruction) pair of the split (whole passes of at least --trials trials) "
+        "and weight each by its probability: the split's expected return, not a draw's",
+    )
     parser.add_argument(
         "--seed",
         type=int,
@@ -132,7 +140,11 @@ def main() -> None:
 
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, **env_kwargs)
-    problem_ids = env.unwrapped.problem_ids(args.split) if args.exhaustive else None
+    # --exhaustive: the split's (problem, instruction) pairs pinned, in the order evaluate_meta plays them
+    problem_ids, instructions = None, None
+    if args.exhaustive:
+        problem_ids, instructions, _ = exhaustive_cases(env, args.split, args.trials)
+    n_trials = args.trials if problem_ids is None else len(problem_ids)
     models = {path: load_model(path) for path in args.model}
     names = {path: type(m).__name__ if len(models) == 1 else path for path, m in models.items()}
     agents = {
@@ -142,7 +154,7 @@ def main() -> None:
     }
     n_problems = len(env.unwrapped.problem_ids(args.split))
     label = args.env + "".join(f" {k}={v!r}" for k, v in env_kwargs.items())
-    print(f"{label} split={args.split} ({n_problems} problems), {args.trials} trials")
+    print(f"{label} split={args.split} ({n_problems} problems), {n_trials} trials")
     for name, agent in agents.items():
         result = evaluate_meta(
             agent,
@@ -151,13 +163,14 @@ def main() -> None:
             split=args.split,
             n_exec_episodes=args.n_exec_episodes,
             seed=args.seed,
-            problem_ids=problem_ids,
+            exhaustive=args.exhaustive,
         )
         print(f"  {name:>20}: {result.summary()}")
     if args.trace:
         action_names = env.unwrapped.action_names
         for name, agent in agents.items():
-            for k, trial in enumerate(play_trials(env, as_trial_agent(agent), args.trace, args.seed, problem_ids)):
+            trials = play_trials(env, as_trial_agent(agent), args.trace, args.seed, problem_ids, instructions)
+            for k, trial in enumerate(trials):
                 actions = [str(a) if action_names is None else action_names[a] for a in trial["exploration_actions"]]
                 print(f"  {name:>20} trial {k}, problem {trial['problem_id']}: {' '.join(actions)}")
     if args.exploration:
@@ -168,16 +181,17 @@ def main() -> None:
         if args.env not in reports:
             raise SystemExit(f"--exploration needs --env MetaBus-v0 or MetaCook-v0, got {args.env}")
         for name, agent in agents.items():
-            report = reports[args.env](env, as_trial_agent(agent), args.trials, args.seed, problem_ids)
+            report = reports[args.env](env, as_trial_agent(agent), n_trials, args.seed, problem_ids, instructions)
             print(f"  {name:>20} exploring: {report.summary()}")
         if args.diagnose:  # the same report with execution on the privileged z = f(T)
             from sb3_dream.dream import DREAM, PrivilegedAgent, trial_problem_ids
 
             split_ids = env.unwrapped.problem_ids(args.split)
-            ids = trial_problem_ids(split_ids, args.trials, args.seed, problem_ids)  # diagnose()'s trials
+            ids = trial_problem_ids(split_ids, n_trials, args.seed, problem_ids)  # diagnose()'s trials
             for name, model in zip(names.values(), models.values()):
                 if isinstance(model, DREAM):
-                    report = reports[args.env](env, PrivilegedAgent(model, ids), args.trials, args.seed, ids)
+                    agent = PrivilegedAgent(model, ids)
+                    report = reports[args.env](env, agent, n_trials, args.seed, ids, instructions)
                     print(f"  {name:>20} with z = f(T): {report.summary()}")
     diagnoses = {}  # path -> DreamDiagnosis, whose z = g trials --gains reuses
     if args.diagnose:
@@ -187,7 +201,7 @@ def main() -> None:
             if not isinstance(model, DREAM):
                 raise SystemExit(f"--diagnose needs DREAM models, got {type(model).__name__} ({path})")
             d = diagnoses[path] = diagnose(  # one execution episode per trial
-                model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, problem_ids=problem_ids
+                model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, exhaustive=args.exhaustive
             )
             prefix = "" if len(models) == 1 else f"{path} "
             print(
@@ -221,7 +235,14 @@ def main() -> None:
                 gains = diagnoses[path].exploration_gains
             else:
                 gains = exploration_gains(
-                    model, args.env, args.trials, args.split, args.seed, env_kwargs, problem_ids, explorer=explorer
+                    model,
+                    args.env,
+                    args.trials,
+                    args.split,
+                    args.seed,
+                    env_kwargs,
+                    explorer=explorer,
+                    exhaustive=args.exhaustive,
                 )
             label = names[path] + ("" if explorer is None else f" ({args.gains_explorer} explorations)")
             print(

@@ -106,42 +106,85 @@ def as_batch_trial_agent(agent: Any, deterministic: bool = True) -> Optional[Bat
 class MetaEvalResult:
     """Execution returns of ``n_trials`` meta-test trials.
 
-    ``returns[k, j]`` is trial k's return in execution episode j.
+    ``returns[k, j]`` is trial k's return in execution episode j. With ``case_probabilities`` (an
+    exhaustive evaluation, see :func:`evaluate_meta`) trial k played the split's (problem,
+    instruction) pair ``k % n_cases`` in whole passes over the pairs, and every mean weights a pair
+    by its probability: it is the split's expected return, not an estimate from drawn problems.
     """
 
     returns: np.ndarray
     exploration_lengths: np.ndarray
     problem_ids: np.ndarray
     seconds: float
+    case_probabilities: Optional[np.ndarray] = None
     per_episode_mean: np.ndarray = field(init=False)
     per_episode_ci: np.ndarray = field(init=False)
 
     def __post_init__(self) -> None:
-        self.per_episode_mean = self.returns.mean(axis=0)
-        self.per_episode_ci = _ci95(self.returns)
+        self.per_episode_mean, self.per_episode_ci = self._mean_ci(self.returns)
+
+    def _mean_ci(self, values: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Per column of ``values`` ``[n_trials, m]``: the mean and its 95% half-width.
+
+        Drawn trials: the sample mean, normal approximation. Exhaustive: the probability-weighted
+        mean; its only noise is each pair's spread over passes (a greedy agent in a deterministic
+        env has none), so the half-width is ``1.96 * sqrt(sum_c p_c^2 s_c^2 / passes)`` from the
+        passes' spread s_c, and NaN after a single pass (nothing to measure it with).
+        """
+        if self.case_probabilities is None:
+            return values.mean(axis=0), _ci95(values)
+        p = np.asarray(self.case_probabilities, dtype=np.float64)
+        passes = values.reshape(-1, len(p), values.shape[1])  # [pass, case, m]
+        mean = np.einsum("c,kcm->m", p, passes) / passes.shape[0]
+        if passes.shape[0] < 2:
+            return mean, np.full(values.shape[1], np.nan)
+        spread = passes.var(axis=0, ddof=1)  # [case, m]
+        return mean, 1.96 * np.sqrt((p[:, None] ** 2 * spread).sum(axis=0) / passes.shape[0])
 
     @property
     def n_trials(self) -> int:
         return int(self.returns.shape[0])
 
     @property
+    def exhaustive(self) -> bool:
+        return self.case_probabilities is not None
+
+    @property
+    def trial_weights(self) -> np.ndarray:
+        """Each trial's weight in :attr:`mean` ``[n_trials]`` (summing to 1): uniform, or its pair's
+        probability over the number of passes when exhaustive."""
+        if self.case_probabilities is None:
+            return np.full(self.n_trials, 1.0 / self.n_trials)
+        passes = self.n_trials // len(self.case_probabilities)
+        return np.tile(np.asarray(self.case_probabilities, dtype=np.float64), passes) / passes
+
+    @property
     def mean(self) -> float:
         """Mean execution return per episode, over all trials and execution episodes."""
-        return float(self.returns.mean())
+        return float(self._mean_ci(self.returns.mean(axis=1, keepdims=True))[0][0])
 
     @property
     def ci(self) -> float:
-        """95% confidence half-width of :attr:`mean` (normal approximation over trials)."""
-        return float(_ci95(self.returns.mean(axis=1, keepdims=True))[0])
+        """95% confidence half-width of :attr:`mean` (normal approximation over trials; for an
+        exhaustive evaluation see :meth:`_mean_ci`)."""
+        return float(self._mean_ci(self.returns.mean(axis=1, keepdims=True))[1][0])
 
     @property
     def mean_exploration_length(self) -> float:
-        return float(self.exploration_lengths.mean())
+        return float(self._mean_ci(self.exploration_lengths.reshape(-1, 1))[0][0])
 
     def summary(self) -> str:
-        per_ep = ", ".join(f"{m:.3f}±{c:.3f}" for m, c in zip(self.per_episode_mean, self.per_episode_ci))
+        def text(mean: float, ci: float) -> str:  # a single exhaustive pass has no half-width
+            return f"{mean:.3f}" if np.isnan(ci) else f"{mean:.3f} ± {ci:.3f}"
+
+        per_ep = ", ".join(text(m, c) for m, c in zip(self.per_episode_mean, self.per_episode_ci))
+        trials = f"{self.n_trials} trials"
+        if self.exhaustive:
+            n_cases = len(self.case_probabilities)  # type: ignore[arg-type]
+            passes = self.n_trials // n_cases
+            trials += f" ({passes} pass{'es' if passes > 1 else ''} over the split's {n_cases} (problem, instruction) pairs)"
         return (
-            f"execution return {self.mean:.3f} ± {self.ci:.3f} over {self.n_trials} trials "
+            f"execution return {text(self.mean, self.ci)} over {trials} "
             f"(per episode: {per_ep}); exploration length {self.mean_exploration_length:.1f}"
         )
 
@@ -151,6 +194,20 @@ def _ci95(values: np.ndarray) -> np.ndarray:
     if n < 2:
         return np.zeros(values.shape[1])
     return 1.96 * values.std(axis=0, ddof=1) / np.sqrt(n)
+
+
+def exhaustive_cases(env: gym.Env, split: str, n_trials: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pinned trials of an exhaustive evaluation of ``split``: every (problem, instruction) pair
+    of :meth:`dream_envs.TrialEnv.trial_cases`, in whole passes, at least ``n_trials`` trials.
+    Returns ``(problem_ids, instructions, probabilities)`` of one pass; play
+    ``len(problem_ids) * passes`` trials with them cycled."""
+    trial_env = env.unwrapped
+    try:
+        problem_ids, instructions, probabilities = trial_env.trial_cases(split)
+    except NotImplementedError as err:
+        raise ValueError(f"exhaustive=True needs a trial env that lists its instructions: {err}") from None
+    passes = -(-check_positive_int("n_trials", n_trials) // len(problem_ids))
+    return np.tile(problem_ids, passes), np.tile(instructions, (passes, 1)), probabilities
 
 
 def _make_env(env: Union[str, gym.Env], split: str, n_exec_episodes: int, env_kwargs: Optional[dict]) -> gym.Env:
@@ -198,6 +255,7 @@ def evaluate_meta(
     problem_ids: Optional[Sequence[int]] = None,
     env_kwargs: Optional[Dict[str, Any]] = None,
     n_envs: int = 16,
+    exhaustive: bool = False,
 ) -> MetaEvalResult:
     """Run ``n_trials`` meta-test trials of ``agent`` on ``split`` and collect execution returns.
 
@@ -211,20 +269,36 @@ def evaluate_meta(
     :param n_envs: trials played side by side, one batched forward per step, by a model (a scripted
         agent plays one at a time). Trial k is seeded ``seed + k`` either way, so a greedy model
         plays the same trials with any ``n_envs`` (up to the rounding of batched matrix products).
+    :param exhaustive: play every (problem, instruction) pair of ``split`` pinned, in whole passes
+        (at least ``n_trials`` trials: MetaCook's held-out split has 133 pairs, so ``n_trials=100``
+        plays one pass), and weight each by its probability under the split's sampling
+        (:meth:`dream_envs.TrialEnv.trial_cases`). The mean is then the split's expected return
+        itself: exact for a greedy agent in a deterministic env, where 100 drawn trials swing with
+        which problems and instructions the draw holds. Each execution episode of a trial gets the
+        pair's instruction, so with ``n_exec_episodes > 1`` an agent whose episodes depend on each
+        other (RL²) is scored on repeats of one instruction.
     """
     n_trials = check_positive_int("n_trials", n_trials)
     n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
     n_envs = check_positive_int("n_envs", n_envs)
+    if exhaustive and problem_ids is not None:
+        raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
     batch_agent = as_batch_trial_agent(agent, deterministic) if n_envs > 1 else None
-    side_by_side = min(n_envs, n_trials) if batch_agent is not None else 1
+    side_by_side = (n_envs if exhaustive else min(n_envs, n_trials)) if batch_agent is not None else 1
     envs, made = _make_envs(env, split, n_exec_episodes, env_kwargs, side_by_side)
     envs = envs[:side_by_side]
+    instructions, probabilities = None, None
+    if exhaustive:
+        problem_ids, instructions, probabilities = exhaustive_cases(envs[0], split, n_trials)
+        n_trials = len(problem_ids)
 
     start = time.perf_counter()
     if batch_agent is not None and len(envs) > 1:
-        trials: Iterable[Dict[str, Any]] = play_trials_batched(envs, batch_agent, n_trials, seed, problem_ids)
+        trials: Iterable[Dict[str, Any]] = play_trials_batched(
+            envs, batch_agent, n_trials, seed, problem_ids, instructions
+        )
     else:
-        trials = play_trials(envs[0], as_trial_agent(agent, deterministic), n_trials, seed, problem_ids)
+        trials = play_trials(envs[0], as_trial_agent(agent, deterministic), n_trials, seed, problem_ids, instructions)
     returns, lengths, pids = [], [], []
     for result in trials:
         returns.append(result["execution_returns"])
@@ -237,6 +311,7 @@ def evaluate_meta(
         exploration_lengths=np.asarray(lengths, dtype=np.float64),
         problem_ids=np.asarray(pids, dtype=np.int64),
         seconds=time.perf_counter() - start,
+        case_probabilities=probabilities,
     )
 
 
@@ -265,6 +340,10 @@ class MetaEvalCallback(BaseCallback):
         ``"first"`` (SB3's ``EvalCallback``: a later one must beat it) or ``"last"`` (the latest of
         them). On a split the agent saturates (MetaCook's training split at the oracle's return from
         about 730K env steps) the first is an early model; the latest has trained longest.
+    :param exhaustive: every evaluation plays all of the split's (problem, instruction) pairs and
+        weights them by their probability (see :func:`evaluate_meta`): the curve then shows the
+        split's expected return, not a 100-trial draw's (``n_trials`` is then a minimum: whole
+        passes over the pairs). The CSV's ``ci`` is NaN after a single pass.
     """
 
     def __init__(
@@ -281,6 +360,7 @@ class MetaEvalCallback(BaseCallback):
         best_model_save_path: Optional[str] = None,
         n_envs: int = 16,
         best_ties: str = "first",
+        exhaustive: bool = False,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
@@ -290,8 +370,11 @@ class MetaEvalCallback(BaseCallback):
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
         n_envs = check_positive_int("n_envs", n_envs)
         # made once: the trials of every evaluation are played side by side in these copies
-        n_side = min(n_envs, self.n_trials)
+        n_side = n_envs if exhaustive else min(n_envs, self.n_trials)
         self.eval_envs, _ = _make_envs(eval_env, split, n_exec_episodes, env_kwargs, n_side)  # they check ``split``
+        self.exhaustive = bool(exhaustive)
+        if self.exhaustive:
+            exhaustive_cases(self.eval_envs[0], split, self.n_trials)  # fails now, not at the first evaluation
         self.eval_env = self.eval_envs[0]
         self.split = split
         self.deterministic, self.seed, self.csv_path = deterministic, seed, csv_path
@@ -355,6 +438,7 @@ class MetaEvalCallback(BaseCallback):
             deterministic=self.deterministic,
             seed=self.seed,
             n_envs=len(self.eval_envs),
+            exhaustive=self.exhaustive,
         )
         self._last_eval_step = self.num_timesteps
         row = {

@@ -1,7 +1,8 @@
 """Experiment runner: algorithms x envs x seeds -> learning curves, a summary table and figures.
 
 Each run trains one algorithm on one env with one seed for ``--steps`` env steps and evaluates it
-on the held-out split every ``--eval-freq`` steps (``--eval-trials`` meta-test trials, greedy) with
+on the held-out split every ``--eval-freq`` steps (``--eval-trials`` meta-test trials, greedy; with
+``--eval-exhaustive`` every (problem, instruction) pair of the split, weighted) with
 :class:`sb3_dream.evaluation.MetaEvalCallback`, which writes the run's learning curve as a CSV
 (``env_steps, wall_clock_s, mean, ci, exploration_length``). Runs go to parallel processes, up to
 ``--jobs`` (default: the machine's cores) at once. DREAM's ``parallel_updates`` (the second update
@@ -39,7 +40,8 @@ its own checkpoints.
                                       model's :func:`sb3_dream.dream.diagnose` and
                                       :func:`sb3_dream.dream.exploration_gains`)
     <env>/<algo>_seed<k>.zip          the trained model, with --save-models
-    <env>/oracle_<split>.json         the env's scripted optimal agent on that split
+    <env>/oracle_<split>.json         the env's scripted optimal agent on that split (oracle_<split>_exhaustive.json
+                                      with --eval-exhaustive)
     <env>/checkpoints/                each run's last checkpoint, with --checkpoint-freq
     <env>/snapshots/                  the model every N env steps, with --snapshot-freq N (SB3's
                                       CheckpointCallback: <algo>_seed<k>_<steps>_steps.zip, no
@@ -192,6 +194,7 @@ class RunConfig:
     eval_freq: int = 10_000
     eval_trials: int = 100
     eval_splits: Tuple[str, ...] = ("test",)
+    eval_exhaustive: bool = False
     threads: int = 1
     device: str = "auto"
     save_models: bool = False
@@ -239,8 +242,9 @@ class RunConfig:
             data.pop(key)
         data["algo_kwargs"] = dict(self.rl2dqn_kwargs if algo == "rl2dqn" else self.dream_kwargs)
         data["eval_splits"] = list(self.eval_splits)
-        if not self.init_from:
-            data.pop("init_from")  # records made before the option compare equal
+        for key in ("init_from", "eval_exhaustive"):
+            if not data[key]:
+                data.pop(key)  # records made before the option compare equal
         return data
 
 
@@ -349,7 +353,8 @@ def init_checkpoint(run: Run, config: RunConfig) -> Tuple[pathlib.Path, Dict[str
     wanted = json.loads(json.dumps(config.settings(run.algo), default=str))
     recorded = dict(record.get("settings", {}))
     same = ("n_envs", "eval_freq", "eval_trials", "eval_splits")
-    changed = sorted(key for key in same if recorded.get(key) != wanted[key])
+    same += ("eval_exhaustive",)
+    changed = sorted(key for key in same if recorded.get(key) != wanted.get(key))
     if changed:
         raise ValueError(f"init_from={config.init_from!r}: {run.name} was made with other {', '.join(changed)}")
     if int(record["env_steps"]) >= config.steps:
@@ -365,6 +370,7 @@ def _meta_test_kwargs(run: Run, config: RunConfig) -> Dict[str, Any]:
     evaluation meets the same problems, a paired comparison."""
     return {
         "n_trials": config.eval_trials,
+        "exhaustive": config.eval_exhaustive,
         "n_exec_episodes": run.env.n_exec_episodes,
         "seed": 0,
         "env_kwargs": run.env.eval_kwargs,
@@ -619,7 +625,13 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
 
         # Which side limits the final model: meta-test vs the execution policy given z = f(T)
         # (and vs the decoder reading the env's optimal exploration).
-        diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.env.eval_kwargs)
+        diagnosis = diagnose(
+            model,
+            run.env.env_id,
+            n_trials=config.eval_trials,
+            env_kwargs=run.env.eval_kwargs,
+            exhaustive=config.eval_exhaustive,
+        )
         info["diagnosis"] = diagnosis.as_dict()
         # What its explorer is paid for, step by step (Equation 5), on the same trials.
         gains = diagnosis.exploration_gains
@@ -823,26 +835,35 @@ def load_curve(path: pathlib.Path) -> Dict[str, np.ndarray]:
     return {k: np.array([float(r[k]) for r in rows]) for k in CURVE_COLUMNS}
 
 
-def oracle_return(env: EnvSpec, split: str, n_trials: int, out: pathlib.Path) -> Optional[float]:
-    """Mean execution return of the env's scripted optimal agent on ``split`` (cached as JSON)."""
+def oracle_return(
+    env: EnvSpec, split: str, n_trials: int, out: pathlib.Path, exhaustive: bool = False
+) -> Optional[float]:
+    """Mean execution return of the env's scripted optimal agent on ``split`` (cached as JSON;
+    ``exhaustive``: over every (problem, instruction) pair, see :func:`evaluate_meta`)."""
     import gymnasium as gym
 
     import dream_envs
     from sb3_dream.evaluation import evaluate_meta
 
-    path = out / env.tag / f"oracle_{split}.json"
+    path = out / env.tag / f"oracle_{split}{'_exhaustive' if exhaustive else ''}.json"
     if path.exists():
         return float(json.loads(path.read_text())["mean"])
     try:
         made = gym.make(env.env_id, split=split, n_exec_episodes=env.n_exec_episodes, **env.eval_kwargs)
         result = evaluate_meta(
-            dream_envs.make_oracle(made), made, n_trials=n_trials, split=split, n_exec_episodes=env.n_exec_episodes
+            dream_envs.make_oracle(made),
+            made,
+            n_trials=n_trials,
+            split=split,
+            n_exec_episodes=env.n_exec_episodes,
+            exhaustive=exhaustive,
         )
         made.close()
     except (AttributeError, NotImplementedError):  # an env without an oracle
         return None
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"mean": result.mean, "ci": result.ci, "n_trials": n_trials}))
+    record = {"mean": result.mean, "ci": result.ci, "n_trials": result.n_trials}
+    path.write_text(json.dumps({**record, "exhaustive": True} if exhaustive else record))
     return result.mean
 
 
@@ -990,6 +1011,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--eval-freq", type=int, default=10_000, help="env steps between evaluations")
     parser.add_argument("--eval-trials", type=int, default=100, help="meta-test trials per evaluation")
     parser.add_argument(
+        "--eval-exhaustive",
+        action="store_true",
+        help="evaluate on every (problem, instruction) pair of the split, weighted by its probability "
+        "(the split's expected return; --eval-trials is then a minimum, in whole passes over the pairs)",
+    )
+    parser.add_argument(
         "--eval-splits",
         nargs="+",
         default=["test"],
@@ -1058,6 +1085,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             preset=args.preset,
             eval_freq=args.eval_freq,
             eval_trials=args.eval_trials,
+            eval_exhaustive=args.eval_exhaustive,
             eval_splits=tuple(dict.fromkeys(args.eval_splits)),
             threads=args.threads,
             device=args.device,
@@ -1089,7 +1117,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     if not args.no_oracle:
         for env in dict.fromkeys(run.env for run in runs):
             for split in config.eval_splits:
-                value = oracle_return(env, split, config.eval_trials, out)
+                value = oracle_return(env, split, config.eval_trials, out, config.eval_exhaustive)
                 if value is not None:
                     oracles[(env.tag, split)] = value
     table = write_summary(summarize(runs, config, out, oracles), out)

@@ -551,6 +551,29 @@ def test_diagnose_side_by_side_is_diagnose_one_trial_at_a_time(bus_model):
         PrivilegedBatchAgent(bus_model, ids, "g", explorers=[make_oracle(gym.make("MetaBus-v0"))]).reset(3)
 
 
+def test_exhaustive_diagnose_plays_and_weights_the_pairs_evaluate_meta_does(bus_model):
+    """diagnose(exhaustive=True) pins the split's (problem, goal) pairs as evaluate_meta does: its
+    z = g return is the model's exhaustive meta-test return, and its privileged agents read the
+    code of each pinned problem (z = f(T) played by hand on those pairs gives the same)."""
+    from sb3_dream.dream import PrivilegedBatchAgent, diagnose, exploration_gains
+    from sb3_dream.evaluation import exhaustive_cases
+
+    env = gym.make("MetaBus-v0", split="train")
+    d = diagnose(bus_model, "MetaBus-v0", n_trials=1, split="train", exhaustive=True)
+    meta_test = evaluate_meta(bus_model, "MetaBus-v0", n_trials=1, split="train", exhaustive=True)
+    assert d.n_trials == meta_test.n_trials == 212  # 53 training problems x 4 goals
+    assert d.return_g == pytest.approx(meta_test.mean, abs=1e-9)
+    assert d.exploration_length == pytest.approx(meta_test.mean_exploration_length, abs=1e-9)
+    pids, instructions, _ = exhaustive_cases(env, "train", 1)
+    by_hand = PrivilegedBatchAgent(bus_model, pids, "f")
+    weighted = evaluate_meta(by_hand, "MetaBus-v0", 1, "train", exhaustive=True)
+    assert d.return_f == pytest.approx(weighted.mean, abs=1e-9)
+    gains = exploration_gains(bus_model, "MetaBus-v0", n_trials=1, split="train", exhaustive=True)
+    assert gains.problem_ids.tolist() == pids.tolist()
+    with pytest.raises(ValueError, match="problem_ids and exhaustive"):
+        diagnose(bus_model, "MetaBus-v0", problem_ids=[0], exhaustive=True)
+
+
 def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, monkeypatch):
     from dream_envs.core import play_trials
     from sb3_dream.dream import exploration_gains

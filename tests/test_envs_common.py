@@ -174,3 +174,25 @@ def test_check_choice_names_the_argument_and_keeps_booleans_apart():
             check_choice(name, value, choices)
     with pytest.raises(ValueError, match="split='val' is not valid; accepted values: 'train', 'test'"):
         check_choice("split", "val", ("train", "test"))
+
+
+def test_trial_cases_are_the_distribution_trials_are_drawn_from(env_id):
+    """Every (problem, instruction) pair of trial_cases, with the frequency its probability says:
+    resets draw the problem and ``_sample_instruction`` (what each execution episode calls) the
+    instruction; each pair's count lies within 4.5 standard deviations of its expected count."""
+    env = gym.make(env_id, split="test")
+    trial_env = env.unwrapped
+    pids, instructions, probabilities = trial_env.trial_cases()
+    assert len(pids) == len(instructions) == len(probabilities) and np.isclose(probabilities.sum(), 1.0)
+    assert set(pids.tolist()) == set(trial_env.problem_ids().tolist())
+    index = {(int(k), tuple(i)): c for c, (k, i) in enumerate(zip(pids, instructions.tolist()))}
+    assert len(index) == len(pids)  # no pair twice
+    n_draws = 600 if env_id == "SignNav3D-v0" else 20_000  # its reset lays out a 3D room
+    counts = np.zeros(len(pids))
+    for draw in range(n_draws):
+        _, info = env.reset(seed=draw)
+        instruction = trial_env._sample_instruction(info["problem_id"], trial_env.split)
+        counts[index[(info["problem_id"], tuple(int(x) for x in instruction))]] += 1
+    spread = np.sqrt(n_draws * probabilities * (1 - probabilities))
+    assert np.all(np.abs(counts - n_draws * probabilities) <= 4.5 * spread + 1)
+    env.close()

@@ -126,3 +126,64 @@ def test_best_ties_choose_among_equal_best_evaluations(ties, expected):
                      for k, m in curve])  # fmt: skip
     assert (callback.best_env_steps, callback.best_mean_reward) == (expected, 0.5)
     assert callback._is_best(0.5) is (ties == "last") and callback._is_best(0.6) and not callback._is_best(0.4)
+
+
+def test_exhaustive_evaluation_is_the_splits_expected_return():
+    """On MetaCook's held-out split the oracle's exhaustive mean is the probability-weighted optimal
+    return of every (problem, recipe) pair, to rounding: the split's expected return itself."""
+    import gymnasium as gym
+
+    from dream_envs.cook import optimal_execution_return
+
+    env = gym.make("MetaCook-v0", split="test")
+    pids, instructions, probabilities = env.unwrapped.trial_cases()
+    expected = sum(p * optimal_execution_return(int(k), tuple(i)) for k, i, p in zip(pids, instructions, probabilities))
+    result = evaluate_meta(dream_envs.make_oracle(env), env, n_trials=100, exhaustive=True)
+    assert result.exhaustive and result.n_trials == len(pids) == 133  # one whole pass covers 100 trials
+    assert result.problem_ids.tolist() == pids.tolist()
+    assert result.mean == pytest.approx(expected, abs=1e-9) and np.isnan(result.ci)  # one pass: no spread measured
+    assert np.isclose(result.trial_weights.sum(), 1.0) and "133 (problem, instruction) pairs" in result.summary()
+    # the training split weights its pairs differently from a plain mean over them
+    train = evaluate_meta(dream_envs.make_oracle(env), "MetaCook-v0", split="train", n_trials=1, exhaustive=True)
+    assert train.n_trials == 2268 and abs(train.mean - train.returns.mean()) > 1e-3
+
+
+def test_exhaustive_evaluation_plays_whole_passes_and_measures_their_spread():
+    kwargs = {"n_actions": 2}  # 2 problems of one instruction each
+    result = evaluate_meta(FirstActionModel(), "MetaBandit-v0", n_trials=5, env_kwargs=kwargs, exhaustive=True)
+    assert result.problem_ids.tolist() == [0, 1] * 3 and result.n_trials == 6  # 5 trials: 3 whole passes
+    # the model is deterministic: no spread between passes, so the half-width is 0
+    assert result.mean == 0.5 and result.ci == 0.0
+    one_by_one = evaluate_meta(FirstActionModel(), "MetaBandit-v0", 5, env_kwargs=kwargs, exhaustive=True, n_envs=1)
+    np.testing.assert_array_equal(one_by_one.returns, result.returns)
+    rand = evaluate_meta(
+        RandomAgent(__import__("gymnasium").spaces.Discrete(2), seed=0),
+        "MetaBandit-v0",
+        n_trials=400,
+        env_kwargs=kwargs,
+        exhaustive=True,
+    )
+    assert rand.n_trials == 400 and rand.ci > 0 and abs(rand.mean - 0.5) < 2 * rand.ci + 0.02
+
+
+def test_exhaustive_bad_input():
+    import gymnasium as gym
+
+    with pytest.raises(ValueError, match="problem_ids and exhaustive"):
+        evaluate_meta(FirstActionModel(), "MetaBandit-v0", problem_ids=[0], exhaustive=True)
+
+    from dream_envs.bandit import MetaBanditEnv
+
+    class DrawnBandit(MetaBanditEnv):  # draws its instruction without listing the choices
+        _instruction_choices = dream_envs.TrialEnv._instruction_choices
+
+        def _sample_instruction(self, problem_id, split):
+            return np.array([1])
+
+    assert evaluate_meta(FirstActionModel(), DrawnBandit(split="test"), n_trials=3).n_trials == 3
+    with pytest.raises(ValueError, match="_instruction_choices"):
+        evaluate_meta(FirstActionModel(), DrawnBandit(split="test"), exhaustive=True)
+    with pytest.raises(ValueError, match="_instruction_choices"):
+        MetaEvalCallback(DrawnBandit(split="test"), exhaustive=True)
+    with pytest.raises(ValueError, match="instructions must come with problem_ids"):
+        dream_envs.play_trials(gym.make("MetaBandit-v0"), RandomAgent(gym.spaces.Discrete(2)), 2, instructions=[[1]])

@@ -146,6 +146,25 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     assert "running" not in capsys.readouterr().out
 
 
+def test_exhaustive_evaluations_cover_every_pair_of_the_split(tmp_path):
+    out = tmp_path / "results"
+    argv = [
+        "--algos", "dream", "--envs", "MetaBandit-v0", "--steps", "40", "--eval-freq", "40", "--eval-trials", "3",
+        "--eval-exhaustive", "--jobs", "1", "--out", str(out), "--no-plot", "--dream-kwargs", *TINY_DREAM,
+    ]  # fmt: skip
+    (record,) = experiments.main(argv)
+    folder = out / "MetaBandit-v0"
+    info = json.loads((folder / "dream_seed0.json").read_text())
+    assert info["settings"]["eval_exhaustive"] is True and "eval_exhaustive" not in RunConfig().settings("dream")
+    assert info["diagnosis"]["n_trials"] == 8  # the bandit's 8 problems, one instruction each: one pass
+    oracle = json.loads((folder / "oracle_test_exhaustive.json").read_text())
+    assert (oracle["mean"], oracle["n_trials"], oracle["exhaustive"]) == (1.0, 8, True)  # 3 trials: one pass of 8
+    assert np.isnan(oracle["ci"])  # a single pass measures no spread
+    assert not (folder / "oracle_test.json").exists()
+    # an exhaustive curve of a deterministic greedy model is exact: no draw, so no half-width after one pass
+    assert np.isnan(load_curve(folder / "dream_seed0.csv")["ci"]).all()
+
+
 def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path):
     out = tmp_path / "results"
     config = RunConfig(

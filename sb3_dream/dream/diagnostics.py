@@ -51,7 +51,7 @@ import torch as th
 from dream_envs import make_oracle
 from dream_envs.core import EXPLORATION, ScriptedAgent, SingleTrialAgent, check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamBatchTrialAgent
-from sb3_dream.evaluation import _make_envs, evaluate_meta
+from sb3_dream.evaluation import _make_envs, evaluate_meta, exhaustive_cases
 
 
 @dataclass
@@ -219,15 +219,22 @@ def _privileged_trials(
     env_kwargs: Optional[Dict[str, Any]],
     problem_ids: Optional[Sequence[int]],
     n_envs: int,
+    exhaustive: bool = False,
 ) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
     """Checks the arguments of :func:`diagnose` and :func:`exploration_gains`, makes the envs and
-    draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial k's problem)."""
+    draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial k's problem).
+    ``exhaustive``: trial k's problem is that of the split's (problem, instruction) pair k (cycled,
+    whole passes, as :func:`~sb3_dream.evaluation.evaluate_meta` pins them)."""
     if not isinstance(model, DREAM):
         raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
     n_trials = check_positive_int("n_trials", n_trials)
     n_envs = check_positive_int("n_envs", n_envs)
-    envs, made = _make_envs(env, split, 1, env_kwargs, min(n_envs, n_trials))  # the envs check ``split``
-    split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))
+    if exhaustive and problem_ids is not None:
+        raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
+    envs, made = _make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
+    split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))  # the envs checked ``split``
+    if exhaustive:
+        return envs, made, split_ids, exhaustive_cases(envs[0], split, n_trials)[0]
     return envs, made, split_ids, trial_problem_ids(split_ids, n_trials, seed, problem_ids)
 
 
@@ -240,6 +247,7 @@ def diagnose(
     env_kwargs: Optional[Dict[str, Any]] = None,
     problem_ids: Optional[Sequence[int]] = None,
     n_envs: int = 16,
+    exhaustive: bool = False,
 ) -> DreamDiagnosis:
     """Meta-test ``model`` on the same ``n_trials`` trials of ``split`` with z = g(tau^exp), with
     z = f(T) and (if the model's encoder is noisy) with z ~ N(f(T), rho^2 I); see the module
@@ -251,14 +259,21 @@ def diagnose(
     :param n_envs: trials played side by side (an env ID is made that many times; a single env is
         played alone, a list of envs side by side, as in :func:`~sb3_dream.evaluation.evaluate_meta`).
         The same trials with any ``n_envs``, up to the rounding of batched matrix products.
+    :param exhaustive: every (problem, instruction) pair of the split, in whole passes of at least
+        ``n_trials`` trials, and every mean weighted by the pairs' probabilities, as
+        :func:`~sb3_dream.evaluation.evaluate_meta` does (``n_trials`` of the result: the trials played).
     """
     envs, made, split_ids, problem_ids = _privileged_trials(
-        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs
+        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
     )
+    n_trials = len(problem_ids)
     trial_env = envs[0].unwrapped
 
     def play(agent: PrivilegedBatchAgent) -> Any:
-        return evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
+        pinned = None if exhaustive else problem_ids  # exhaustive: evaluate_meta pins the same pairs
+        return evaluate_meta(
+            agent, envs, n_trials, split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive
+        )
 
     results, agents = {}, {}
     for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
@@ -273,9 +288,10 @@ def diagnose(
         e.close()
 
     f = agents["g"].f
+    weights = results["g"].trial_weights  # uniform, or the pairs' probabilities when exhaustive
 
     def decoder_error(agent: PrivilegedBatchAgent) -> float:  # mean ||g(tau^exp) - f(T)||^2 over the trials
-        return float(((agent.codes() - f) ** 2).sum(axis=1).mean())
+        return float(weights @ ((agent.codes() - f) ** 2).sum(axis=1))
 
     optimal = results.get("optimal_exploration")
     f_split = model._encode(split_ids, noisy=False)
@@ -288,10 +304,10 @@ def diagnose(
         return_f=results["f"].mean,
         return_f_noisy=results["f_noisy"].mean if "f_noisy" in results else None,
         decoder_error=decoder_error(agents["g"]),
-        f_norm_sq=float((f**2).sum(axis=1).mean()),
+        f_norm_sq=float(weights @ (f**2).sum(axis=1)),
         f_spread=float(pair_sum / max(1, n * (n - 1))),
         f_variance_by_feature=f_variance_by_feature(f_split, features),
-        exploration_length=float(results["g"].exploration_lengths.mean()),
+        exploration_length=results["g"].mean_exploration_length,
         n_trials=n_trials,
         return_g_optimal_exploration=None if optimal is None else optimal.mean,
         decoder_error_optimal_exploration=None if optimal is None else decoder_error(agents["optimal_exploration"]),
@@ -332,6 +348,7 @@ def exploration_gains(
     problem_ids: Optional[Sequence[int]] = None,
     n_envs: int = 16,
     explorer: Optional[Callable[[gym.Env], ScriptedAgent]] = None,
+    exhaustive: bool = False,
 ) -> ExplorationGains:
     """Play ``n_trials`` greedy meta-test trials of ``model`` (the trials :func:`diagnose` plays, with
     the same arguments) and reward each exploration step as training relabels it (Equation 5):
@@ -341,11 +358,16 @@ def exploration_gains(
     :param explorer: makes a scripted explorer for an env (e.g. ``dream_envs.make_oracle``, or a
         random agent): its explorations instead of the model's, rewarded by the model's f and g
         (what the model's reward would pay for steps its own explorer does not take).
+    :param exhaustive: the trials of :func:`diagnose` with ``exhaustive=True`` (every (problem,
+        instruction) pair of the split; the gains themselves are not weighted).
     """
-    envs, made, _, problem_ids = _privileged_trials(model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs)
+    envs, made, _, problem_ids = _privileged_trials(
+        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
+    )
     explorers = None if explorer is None else [explorer(e) for e in envs]
     agent = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
-    evaluate_meta(agent, envs, n_trials, split, seed=seed, problem_ids=problem_ids, n_envs=len(envs))
+    pinned = None if exhaustive else problem_ids
+    evaluate_meta(agent, envs, len(problem_ids), split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive)
     for e in made:
         e.close()
     return _rewarded(model, problem_ids, agent)
