@@ -16,7 +16,9 @@ options: use ``--force`` or a new ``--out`` to redo it). An interrupted run star
 the run saves its model (with optimizer states and counters) and replay buffers under
 ``<env>/checkpoints/``, and the same command later goes on from the last checkpoint, keeping the
 learning curve and wall-clock so far (the envs start fresh trials; nothing else is lost). This is
-how budgets longer than one sitting (the paper's millions of steps) are run on a laptop.
+how budgets longer than one sitting (the paper's millions of steps) are run on a laptop. Its
+worker processes end with the runner however it is stopped (Ctrl-C, ``kill``, ``kill -9``), so
+none trains on unseen into ``--out``.
 A complete run keeps its last checkpoint (at its final step), so the same command with a larger
 ``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
 starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
@@ -93,6 +95,7 @@ import multiprocessing
 import os
 import pathlib
 import shutil
+import threading
 import time
 import traceback
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -700,6 +703,23 @@ def _run_worker(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs:
         }
 
 
+def _exit_with_parent(parent_pid: int, poll_seconds: float = 1.0) -> None:
+    """Worker-process initializer: end this worker soon after the runner that started it ends.
+
+    A runner stopped by ``kill`` (SIGTERM or SIGKILL, unlike Ctrl-C, which reaches its whole
+    process group) would otherwise leave its workers training on, writing checkpoints and curves
+    that a later command then mistakes for its own. Exiting at once is safe: every file a run
+    writes is replaced atomically, so the run goes on from its last checkpoint next time.
+    """
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(poll_seconds)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int]) -> List[Run]:
     """Every (env, algo, seed) combination, validated."""
     unknown = [a for a in algos if a not in ALGOS]
@@ -784,9 +804,12 @@ def run_experiments(
     elif pending:
         # "spawn": fresh interpreters, no forked torch thread pools; the worker is named by its
         # module so that pickling works under ``python -m sb3_dream.experiments`` too.
-        worker = importlib.import_module("sb3_dream.experiments")._run_worker
+        module = importlib.import_module("sb3_dream.experiments")
+        worker = module._run_worker
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        with concurrent.futures.ProcessPoolExecutor(
+            max_workers=jobs, mp_context=context, initializer=module._exit_with_parent, initargs=(os.getpid(),)
+        ) as pool:
             futures = [pool.submit(worker, run, config, out, jobs) for run in pending]
             for future in concurrent.futures.as_completed(futures):
                 records.append(future.result())

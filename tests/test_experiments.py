@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
+import time
 
 import numpy as np
 import pytest
@@ -456,3 +458,69 @@ def test_select_on_must_be_an_evaluated_split():
     with pytest.raises(ValueError, match="select_on='train' is not valid; accepted values: the evaluated splits"):
         RunConfig(select_on="train")
     assert RunConfig(select_on="train", eval_splits=("test", "train")).select_on == "train"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads the process table from /proc")
+def test_workers_stop_when_the_runner_is_killed(tmp_path):
+    """``kill -9`` of the runner (no Ctrl-C reaching its process group) ends its worker processes
+    too, instead of leaving them training on into --out."""
+    import signal
+    import subprocess
+    import sys
+
+    argv = [
+        sys.executable, "-m", "sb3_dream.experiments", "--algos", "dream", "--envs", "MetaBandit-v0", "--seeds", "0",
+        "1", "--steps", "10000000", "--eval-freq", "1000000", "--jobs", "2", "--out", str(tmp_path), "--no-plot",
+        "--dream-kwargs", *TINY_DREAM,
+    ]  # fmt: skip
+    runner = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+    def workers() -> list:
+        found = []
+        for entry in os.listdir("/proc"):
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            if int(fields[1]) == runner.pid and fields[0] != "Z" and b"spawn_main" in _cmdline(int(entry)):
+                found.append(int(entry))  # a live child of the runner that is a pool worker
+        return found
+
+    started: list = []
+    try:
+        deadline = time.time() + 120
+        while len(workers()) < 2 and time.time() < deadline:
+            time.sleep(0.5)
+        started = workers()
+        assert len(started) >= 2, "the runner started no worker processes"
+        runner.send_signal(signal.SIGKILL)
+        runner.wait()
+        deadline = time.time() + 30
+        alive = started
+        while alive and time.time() < deadline:
+            time.sleep(0.5)
+            alive = [pid for pid in started if os.path.exists(f"/proc/{pid}") and _state(pid) != "Z"]
+        assert not alive, f"workers {alive} outlived the runner"
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+        for pid in set(started + workers()):
+            if os.path.exists(f"/proc/{pid}") and b"spawn_main" in _cmdline(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read()
+    except OSError:
+        return b""
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "Z"
