@@ -601,7 +601,8 @@ def play_trials_batched(
     def start(i: int) -> None:
         nonlocal next_trial
         trial[i] = next_trial
-        obs[i], info = envs[i].reset(seed=seed + next_trial, options=_trial_options(next_trial, problem_ids, instructions))
+        options = _trial_options(next_trial, problem_ids, instructions)
+        obs[i], info = envs[i].reset(seed=seed + next_trial, options=options)
         records[i], infos[i] = _TrialRecord(info), public_info(info)
         next_trial += 1
 

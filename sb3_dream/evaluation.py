@@ -182,7 +182,8 @@ class MetaEvalResult:
         if self.exhaustive:
             n_cases = len(self.case_probabilities)  # type: ignore[arg-type]
             passes = self.n_trials // n_cases
-            trials += f" ({passes} pass{'es' if passes > 1 else ''} over the split's {n_cases} (problem, instruction) pairs)"
+            over = f"over the split's {n_cases} (problem, instruction) pairs"
+            trials += f" ({passes} pass{'es' if passes > 1 else ''} {over})"
         return (
             f"execution return {text(self.mean, self.ci)} over {trials} "
             f"(per episode: {per_ep}); exploration length {self.mean_exploration_length:.1f}"

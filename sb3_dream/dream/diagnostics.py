@@ -367,7 +367,9 @@ def exploration_gains(
     explorers = None if explorer is None else [explorer(e) for e in envs]
     agent = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
     pinned = None if exhaustive else problem_ids
-    evaluate_meta(agent, envs, len(problem_ids), split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive)
+    evaluate_meta(
+        agent, envs, len(problem_ids), split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive
+    )
     for e in made:
         e.close()
     return _rewarded(model, problem_ids, agent)
