@@ -156,13 +156,14 @@ def main() -> None:
     label = args.env + "".join(f" {k}={v!r}" for k, v in env_kwargs.items())
     print(f"{label} split={args.split} ({n_problems} problems), {n_trials} trials")
     for name, agent in agents.items():
-        result = evaluate_meta(
+        result = evaluate_meta(  # by ID: a model plays 16 trials side by side (the env object: one at a time)
             agent,
-            env,
+            args.env,
             n_trials=args.trials,
             split=args.split,
             n_exec_episodes=args.n_exec_episodes,
             seed=args.seed,
+            env_kwargs=env_kwargs,
             exhaustive=args.exhaustive,
         )
         print(f"  {name:>20}: {result.summary()}")
