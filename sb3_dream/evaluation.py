@@ -174,10 +174,7 @@ class MetaEvalResult:
         return float(self._mean_ci(self.exploration_lengths.reshape(-1, 1))[0][0])
 
     def summary(self) -> str:
-        def text(mean: float, ci: float) -> str:  # a single exhaustive pass has no half-width
-            return f"{mean:.3f}" if np.isnan(ci) else f"{mean:.3f} ± {ci:.3f}"
-
-        per_ep = ", ".join(text(m, c) for m, c in zip(self.per_episode_mean, self.per_episode_ci))
+        per_ep = ", ".join(format_mean_ci(m, c) for m, c in zip(self.per_episode_mean, self.per_episode_ci))
         trials = f"{self.n_trials} trials"
         if self.exhaustive:
             n_cases = len(self.case_probabilities)  # type: ignore[arg-type]
@@ -185,9 +182,14 @@ class MetaEvalResult:
             over = f"over the split's {n_cases} (problem, instruction) pairs"
             trials += f" ({passes} pass{'es' if passes > 1 else ''} {over})"
         return (
-            f"execution return {text(self.mean, self.ci)} over {trials} "
+            f"execution return {format_mean_ci(self.mean, self.ci)} over {trials} "
             f"(per episode: {per_ep}); exploration length {self.mean_exploration_length:.1f}"
         )
+
+
+def format_mean_ci(mean: float, ci: float) -> str:
+    """``mean ± ci``; the mean alone when ``ci`` is NaN (a single exhaustive pass measures none)."""
+    return f"{mean:.3f}" if np.isnan(ci) else f"{mean:.3f} ± {ci:.3f}"
 
 
 def _ci95(values: np.ndarray) -> np.ndarray:

@@ -104,7 +104,7 @@ import numpy as np
 
 from dream_envs import all_splits, env_splits
 from dream_envs.core import check_choice
-from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS
+from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS, format_mean_ci
 
 DREAM_ALGOS = ("dream", "dream_no_bottleneck")  # the runs that train sb3_dream.DREAM
 ALGOS = (*DREAM_ALGOS, "rl2dqn")
@@ -390,7 +390,7 @@ def _make_progress_callback(tag: str, **kwargs: Any) -> Any:
             row = self.results[-1]
             print(
                 f"[{tag}] {row['env_steps']:>8} steps {row['wall_clock_s']:7.0f}s  {self.split} return "
-                f"{row['mean']:.3f} ± {row['ci']:.3f}  exploration length {row['exploration_length']:.1f}",
+                f"{format_mean_ci(row['mean'], row['ci'])}  exploration length {row['exploration_length']:.1f}",
                 flush=True,
             )
 
@@ -678,7 +678,7 @@ def _meta_test_best(run: Run, config: RunConfig, best: Any, tag: str) -> Dict[st
     result = evaluate_meta(model, run.env.env_id, split="test", **_meta_test_kwargs(run, config))
     print(
         f"[{tag}] best on {best.split}: {best.best_mean_reward:.3f} at {best.best_env_steps} env steps; "
-        f"held-out return {result.mean:.3f} ± {result.ci:.3f}",
+        f"held-out return {format_mean_ci(result.mean, result.ci)}",
         flush=True,
     )
     return {

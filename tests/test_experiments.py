@@ -148,7 +148,7 @@ def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
     assert "running" not in capsys.readouterr().out
 
 
-def test_exhaustive_evaluations_cover_every_pair_of_the_split(tmp_path):
+def test_exhaustive_evaluations_cover_every_pair_of_the_split(tmp_path, capsys):
     out = tmp_path / "results"
     argv = [
         "--algos", "dream", "--envs", "MetaBandit-v0", "--steps", "40", "--eval-freq", "40", "--eval-trials", "3",
@@ -165,6 +165,8 @@ def test_exhaustive_evaluations_cover_every_pair_of_the_split(tmp_path):
     assert not (folder / "oracle_test.json").exists()
     # an exhaustive curve of a deterministic greedy model is exact: no draw, so no half-width after one pass
     assert np.isnan(load_curve(folder / "dream_seed0.csv")["ci"]).all()
+    printed = capsys.readouterr().out
+    assert "test return 0.125  exploration length" in printed and "nan" not in printed
 
 
 def test_interrupted_run_starts_over_and_train_split_gets_its_own_curve(tmp_path):
