@@ -133,9 +133,9 @@ class MetaEvalResult:
         """
         if self.case_probabilities is None:
             return values.mean(axis=0), _ci95(values)
+        mean = self.trial_weights @ values  # each pair's probability, shared among its passes
         p = np.asarray(self.case_probabilities, dtype=np.float64)
         passes = values.reshape(-1, len(p), values.shape[1])  # [pass, case, m]
-        mean = np.einsum("c,kcm->m", p, passes) / passes.shape[0]
         if passes.shape[0] < 2:
             return mean, np.full(values.shape[1], np.nan)
         spread = passes.var(axis=0, ddof=1)  # [case, m]

@@ -355,8 +355,7 @@ def init_checkpoint(run: Run, config: RunConfig) -> Tuple[pathlib.Path, Dict[str
         )
     wanted = json.loads(json.dumps(config.settings(run.algo), default=str))
     recorded = dict(record.get("settings", {}))
-    same = ("n_envs", "eval_freq", "eval_trials", "eval_splits")
-    same += ("eval_exhaustive",)
+    same = ("n_envs", "eval_freq", "eval_trials", "eval_splits", "eval_exhaustive")
     changed = sorted(key for key in same if recorded.get(key) != wanted.get(key))
     if changed:
         raise ValueError(f"init_from={config.init_from!r}: {run.name} was made with other {', '.join(changed)}")
