@@ -116,6 +116,7 @@ VARIANTS = {
     "fused-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": True}}},  # DREAM's default
     "loop-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": False}}},  # torch's per-parameter loop
     "encoder-target": {"execution_target_z": "encoder"},
+    "episodes": {"execution_sampling": "episodes"},  # whole execution episodes per update
 }
 
 
@@ -214,8 +215,7 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
 
     for i in range(n_updates):  # the order of DREAM._update with parallel_updates
         explored = buffers.exploration.get(model._rng.integers(len(buffers.exploration), size=model.batch_size))
-        exe = buffers.execution.sample(model.batch_size, buffers.exploration, model._rng)
-        traj = buffers.exploration.get(exe.slots)
+        exe, traj = model._sample_execution(model.batch_size)
         # Every 10th update is counted instead of timed (the counter slows what it counts); each
         # part runs once either way, so the networks follow the same updates.
         part = counted_part if i % 10 == 9 else timed_part

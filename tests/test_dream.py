@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import copy
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -305,6 +308,76 @@ def test_execution_target_z_rejects_other_values():
     accepted = "execution_target_z='decoder' is not valid; accepted values: 'own', 'encoder'"
     with pytest.raises(ValueError, match=accepted):
         DREAM("MetaBus-v0", execution_target_z="decoder")
+
+
+def test_execution_buffer_links_each_episode_and_samples_whole_ones():
+    # three envs interleave their transitions in the ring; the links still follow each episode
+    env = make_vec_env("MetaBus-v0", n_envs=3, seed=0, env_kwargs={"variant": "map"})
+    model = DREAM(env, seed=0, execution_sampling="episodes", **FAST)
+    model.learn(900)
+    buffer, n = model.replay_buffer.execution, len(model.replay_buffer.execution)
+    links = buffer.next_in_episode[:n]
+    linked = np.flatnonzero(links >= 0)
+    assert len(linked) > n // 2  # most transitions have a successor (MetaBus executions last several steps)
+    nxt = links[linked]
+    assert (buffer.slots[nxt] == buffer.slots[linked]).all()
+    assert (buffer.generations[nxt] == buffer.generations[linked]).all()
+    assert (buffer.steps[nxt] == buffer.steps[linked] + 1).all()
+    assert (buffer.dones[linked] == 0).all()  # nothing continues past a terminal transition
+    np.testing.assert_array_equal(buffer.episode_links()[:n], links)  # what a saved buffer rebuilds
+
+    exe, traj = model._sample_execution(8)
+    owners = exe.trajectories.numpy()
+    assert len(exe.slots) == len(traj.states) == 8 and sorted(set(owners)) == list(range(8))
+    assert len(exe.actions) > 8  # whole episodes: more transitions than trajectories
+    for k in range(8):
+        steps = exe.steps.numpy()[owners == k]
+        np.testing.assert_array_equal(steps, np.arange(len(steps)))  # from the episode's start, in order
+
+
+def test_execution_buffer_pickled_before_the_links_rebuilds_them():
+    model = DREAM("MetaBus-v0", seed=2, **FAST)
+    model.learn(500)
+    buffer = model.replay_buffer.execution
+    state = dict(buffer.__dict__)
+    del state["next_in_episode"], state["_last_index"]
+    old = pickle.loads(pickle.dumps(buffer))
+    old.__dict__.clear()
+    old.__setstate__(state)
+    np.testing.assert_array_equal(old.next_in_episode, buffer.next_in_episode)
+    assert (old.next_in_episode >= 0).any()
+
+
+def test_episode_batches_score_each_transition_as_the_paper_batch_does():
+    # A batch of whole episodes (one trajectory per episode) gives the execution DDQN losses of the
+    # same transitions sampled one by one (each with its own copy of its trajectory): the sharing
+    # changes the cost, not the math. (The decoder and bottleneck losses weight trials, not
+    # transitions, so they differ by design.)
+    model = DREAM("MetaBus-v0", seed=4, encoder_variance=0.0, execution_sampling="episodes", **FAST)
+    model.learn(500)
+    exe, traj = model._sample_execution(6)
+    owner = exe.trajectories.numpy()
+    one_by_one = exe._replace(slots=exe.slots[owner], trajectories=th.arange(len(owner)))
+    saved = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    optimizer = copy.deepcopy(model.policy.optimizer.state_dict())
+    shared = model._execution_losses(exe, traj)
+    model.policy.load_state_dict(saved)
+    model.policy.optimizer.load_state_dict(optimizer)
+    copied = model._execution_losses(one_by_one, model.replay_buffer.exploration.get(one_by_one.slots))
+    for key in ("execution_loss_traj", "execution_loss_prob", "execution_q_mean"):
+        assert shared[key] == pytest.approx(copied[key], rel=1e-5), key
+
+
+def test_execution_sampling_is_saved_and_checked(tmp_path):
+    model = DREAM("MetaBus-v0", seed=1, execution_sampling="episodes", **FAST)
+    model.learn(1000)
+    assert model._n_updates > 0
+    model.save(tmp_path / "model.zip")
+    assert DREAM.load(tmp_path / "model.zip").execution_sampling == "episodes"
+    assert DREAM("MetaBus-v0").execution_sampling == "transitions"  # the paper's
+    accepted = "execution_sampling='trials' is not valid; accepted values: 'transitions', 'episodes'"
+    with pytest.raises(ValueError, match=accepted):
+        DREAM("MetaBus-v0", execution_sampling="trials")
 
 
 @pytest.mark.parametrize("target_z", EXECUTION_TARGET_Z)

@@ -6,14 +6,16 @@
   decoder reads its trajectories.
 * :class:`ExecutionBuffer` (B_exe): execution transitions (s, i, a, r, s', done) that keep a
   reference (slot and generation) to their trial's exploration trajectory in B_exp (capacity
-  100K). A transition whose trajectory was overwritten is never sampled.
+  100K). A transition whose trajectory was overwritten is never sampled. Each transition also
+  links to the next one of its execution episode, so whole episodes can be sampled
+  (``DREAM(execution_sampling="episodes")``).
 
 Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) saves everything.
 """
 
 from __future__ import annotations
 
-from typing import Dict, NamedTuple
+from typing import Dict, NamedTuple, Optional
 
 import numpy as np
 import torch as th
@@ -36,8 +38,9 @@ class ExecutionBatch(NamedTuple):
     rewards: th.Tensor  # [B]
     next_states: th.Tensor
     dones: th.Tensor  # [B] 1.0 where s' is terminal (not a time limit)
-    slots: np.ndarray  # [B] the exploration-buffer slot of each transition's trial
+    slots: np.ndarray  # [N] the exploration-buffer slots of the batch's trials, one per trajectory to read
     steps: th.Tensor  # [B] the step of s within its execution episode (s' is at steps + 1)
+    trajectories: th.Tensor  # [B] which of ``slots`` holds each transition's exploration trajectory
 
 
 def _state_dtype(space: spaces.Space) -> np.dtype:
@@ -120,6 +123,8 @@ class ExecutionBuffer:
         self.slots = np.zeros(capacity, dtype=np.int64)
         self.generations = np.zeros(capacity, dtype=np.int64)
         self.steps = np.zeros(capacity, dtype=np.int64)
+        self.next_in_episode = np.full(capacity, -1, dtype=np.int64)  # the episode's next transition, or -1
+        self._last_index = np.full(0, -1, dtype=np.int64)  # per env: where its last transition went
         self.pos, self.full = 0, False
 
     def __setstate__(self, state: Dict[str, object]) -> None:
@@ -127,29 +132,96 @@ class ExecutionBuffer:
         self.__dict__.update(state)
         if "steps" not in state:
             self.steps = np.zeros(len(self.actions), dtype=np.int64)
+        if "next_in_episode" not in state:  # pickled before episodes were linked: link them now
+            self.next_in_episode = self.episode_links()
+            self._last_index = np.full(0, -1, dtype=np.int64)
 
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
 
-    def add(self, transitions: Dict[str, np.ndarray]) -> None:
-        """Add a batch of transitions (arrays with a leading dim, one row per env)."""
+    def add(self, transitions: Dict[str, np.ndarray], envs: Optional[np.ndarray] = None) -> None:
+        """Add a batch of transitions (arrays with a leading dim, one row per env; ``envs``: which
+        env each row comes from, default ``0..n-1``), linking each to its episode's previous one."""
         n = len(transitions["actions"])
         idx = (self.pos + np.arange(n)) % self.capacity
+        envs = np.arange(n) if envs is None else np.asarray(envs, dtype=np.int64)
+        if len(self._last_index) <= envs.max(initial=-1):
+            grown = np.full(envs.max() + 1, -1, dtype=np.int64)
+            grown[: len(self._last_index)] = self._last_index
+            self._last_index = grown
+        # The env's last transition continues into this one when it is the previous step of the
+        # same trial's execution episode (checked before the write, which may reuse its row).
+        prev = self._last_index[envs]
+        safe = np.maximum(prev, 0)
+        linked = (
+            (prev >= 0)
+            & (transitions["steps"] > 0)
+            & (self.slots[safe] == transitions["slots"])
+            & (self.generations[safe] == transitions["generations"])
+            & (self.steps[safe] == np.asarray(transitions["steps"]) - 1)
+        )
         for key, value in transitions.items():
             getattr(self, key)[idx] = value
+        self.next_in_episode[idx] = -1
+        self.next_in_episode[prev[linked]] = idx[linked]
+        self._last_index[envs] = idx
         self.full = self.full or self.pos + n >= self.capacity
         self.pos = int((self.pos + n) % self.capacity)
+
+    def _stale(self, idx: np.ndarray, exploration: ExplorationBuffer) -> np.ndarray:
+        """Whether each transition's exploration trajectory has been overwritten."""
+        return exploration.generation[self.slots[idx]] != self.generations[idx]
 
     def sample(self, batch_size: int, exploration: ExplorationBuffer, rng: np.random.Generator) -> ExecutionBatch:
         """Uniform over the transitions whose exploration trajectory is still stored."""
         idx = rng.integers(len(self), size=batch_size)
         for _ in range(100):
-            stale = exploration.generation[self.slots[idx]] != self.generations[idx]
+            stale = self._stale(idx, exploration)
             if not stale.any():
                 break
             idx[stale] = rng.integers(len(self), size=int(stale.sum()))
         else:
             raise RuntimeError("the execution buffer references no stored exploration trajectory: grow buffer_size")
+        return self._batch(idx, self.slots[idx], np.arange(batch_size))
+
+    def sample_episodes(
+        self, n_episodes: int, exploration: ExplorationBuffer, rng: np.random.Generator
+    ) -> ExecutionBatch:
+        """Every stored transition of ``n_episodes`` execution episodes, drawn uniformly among the
+        episodes whose start and exploration trajectory are still stored (the authors' code samples
+        its replay as whole episodes). The batch holds one trajectory per episode."""
+        starts = np.flatnonzero(self.steps[: len(self)] == 0)
+        starts = starts[~self._stale(starts, exploration)]
+        if not len(starts):
+            raise RuntimeError("the execution buffer holds no episode start whose exploration trajectory is stored")
+        heads = starts[rng.integers(len(starts), size=n_episodes)]
+        rows, owners = [], []
+        current, owner = heads, np.arange(n_episodes)
+        while len(current):  # one step of every episode at a time: at most the horizon's length
+            rows.append(current)
+            owners.append(owner)
+            following = self.next_in_episode[current]
+            current, owner = following[following >= 0], owner[following >= 0]
+        return self._batch(np.concatenate(rows), self.slots[heads], np.concatenate(owners))
+
+    def episode_links(self) -> np.ndarray:
+        """``next_in_episode`` rebuilt from the stored transitions alone (for buffers saved before
+        the links were kept): within a trial, a transition continues the one written before it
+        when its step is the next."""
+        n = len(self)
+        age = (np.arange(n) - (self.pos if self.full else 0)) % self.capacity if n else np.arange(0)
+        order = np.lexsort((age, self.generations[:n], self.slots[:n]))  # by trial, then by writing order
+        links = np.full(self.capacity, -1, dtype=np.int64)
+        a, b = order[:-1], order[1:]
+        same = (
+            (self.slots[a] == self.slots[b])
+            & (self.generations[a] == self.generations[b])
+            & (self.steps[b] == self.steps[a] + 1)
+        )
+        links[a[same]] = b[same]
+        return links
+
+    def _batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray) -> ExecutionBatch:
         to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
         return ExecutionBatch(
             states=to(self.states[idx]),
@@ -158,8 +230,9 @@ class ExecutionBuffer:
             rewards=to(self.rewards[idx]),
             next_states=to(self.next_states[idx]),
             dones=to(self.dones[idx]),
-            slots=self.slots[idx],
+            slots=slots,
             steps=to(self.steps[idx]),
+            trajectories=to(trajectories),
         )
 
 

@@ -50,7 +50,13 @@ from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent, S
 from dream_envs.core import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
-from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer, TrajectoryBatch
+from sb3_dream.dream.buffers import (
+    DreamReplayBuffer,
+    ExecutionBatch,
+    ExecutionBuffer,
+    ExplorationBuffer,
+    TrajectoryBatch,
+)
 from sb3_dream.dream.policies import DreamPolicy
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
@@ -58,6 +64,7 @@ SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
 # What the execution Q's target conditions on (DREAM(execution_target_z=...)).
 EXECUTION_TARGET_Z = ("own", "encoder")
+EXECUTION_SAMPLING = ("transitions", "episodes")
 PARALLEL_UPDATES = (True, False, "auto")
 
 
@@ -162,6 +169,15 @@ class DREAM(TrialOffPolicyAlgorithm):
         f. ``"encoder"``: the target encoder's f(T) for both, as in the authors' code (their target
         network always embedded the problem ID); it saves the target decoder's LSTM pass over the
         execution batch's trajectories (see the README's Speed section).
+    :param execution_sampling: what one execution update learns from. ``"transitions"`` (default,
+        the paper's Algorithm 1): ``batch_size`` transitions drawn uniformly from B_exe, each with
+        its own trial's exploration trajectory. ``"episodes"`` (the authors' code, which samples its
+        replay as whole episodes): ``batch_size`` execution episodes drawn uniformly, every stored
+        transition of each; the decoder still reads ``batch_size`` trajectories (one per episode,
+        shared by its transitions), so an update learns from up to the horizon's length times more
+        execution transitions for a modest increase in its cost (the execution Q-network's passes
+        grow, the decoder's do not; see the README's Speed section). The bottleneck and the decoder
+        loss see the same ``batch_size`` trials either way.
     :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
         Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also
         sees the step within its episode, so a greedy policy need not repeat itself on a second
@@ -200,6 +216,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         bootstrap_at_horizon: bool = False,
         parallel_updates: Union[bool, str] = "auto",
         execution_target_z: str = "own",
+        execution_sampling: str = "transitions",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -233,6 +250,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             check_non_negative(name, value)
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
+        check_choice("execution_sampling", execution_sampling, EXECUTION_SAMPLING)
 
         super().__init__(
             policy,
@@ -272,6 +290,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.bootstrap_at_horizon = bootstrap_at_horizon
         self.parallel_updates = parallel_updates
         self.execution_target_z = execution_target_z
+        self.execution_sampling = execution_sampling
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
         if self.env is not None:
@@ -688,7 +707,8 @@ class DREAM(TrialOffPolicyAlgorithm):
                     "slots": self._slots[executed],
                     "generations": self._generations[executed],
                     "steps": state.execution_step[executed],
-                }
+                },
+                envs=executed,
             )
 
     def learn(
@@ -738,8 +758,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         if exploration_ready:
             explored = buffers.exploration.get(self._rng.integers(len(buffers.exploration), size=batch_size))
         if execution_ready:
-            exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
-            traj = buffers.exploration.get(exe.slots)  # each transition's exploration trajectory
+            exe, traj = self._sample_execution(batch_size)
         if self.updates_in_parallel and exploration_ready and execution_ready:
             return self._parallel_update(explored, exe, traj)
         if exploration_ready:
@@ -747,6 +766,15 @@ class DREAM(TrialOffPolicyAlgorithm):
         if execution_ready:
             stats.update(self._execution_losses(exe, traj))
         return stats
+
+    def _sample_execution(self, batch_size: int) -> Tuple[ExecutionBatch, TrajectoryBatch]:
+        """An execution batch (``execution_sampling``) and the exploration trajectories it reads."""
+        buffers = self.replay_buffer
+        if self.execution_sampling == "episodes":
+            exe = buffers.execution.sample_episodes(batch_size, buffers.exploration, self._rng)
+        else:
+            exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
+        return exe, buffers.exploration.get(exe.slots)
 
     @th.no_grad()
     def _reward_codes(self, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
@@ -765,7 +793,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             return self.device.type == "cpu" and available_cores() > 1
         return bool(self.parallel_updates)
 
-    def _parallel_update(self, explored: TrajectoryBatch, exe, traj: TrajectoryBatch) -> Dict[str, float]:
+    def _parallel_update(self, explored: TrajectoryBatch, exe: ExecutionBatch, traj: TrajectoryBatch) -> Dict[str, float]:
         """``parallel_updates``: the no-gradient passes and the exploration update run in a second
         thread beside the execution update, with the same inputs, so with the same results.
 
@@ -787,7 +815,7 @@ class DREAM(TrialOffPolicyAlgorithm):
 
     def _execution_losses(
         self,
-        exe,
+        exe: ExecutionBatch,
         traj: TrajectoryBatch,
         target_z_g: Optional[Callable[[], th.Tensor]] = None,
         before_step: Optional[Callable[[], Any]] = None,
@@ -796,18 +824,17 @@ class DREAM(TrialOffPolicyAlgorithm):
 
         Everything here is computed on the same execution samples (Appendix A: the bottleneck and
         the decoder are updated "from the same execution replay buffer samples"): g of every prefix
-        of each transition's exploration trajectory ``traj`` (one decoder pass), and f(T).
+        of the batch's exploration trajectories ``traj`` (one decoder pass), and f(T); transition j
+        reads trajectory ``exe.trajectories[j]``.
         ``target_z_g`` gives the target decoder's z when another thread computes it;
         ``before_step`` is called before the optimizer changes the networks.
         """
         policy = self.policy
-        g_all = policy.decoder(traj.states, traj.actions)  # [B, T+1, z]: every prefix in one pass
-        f = policy.encoder(traj.problem_features)
-        n_exe = len(exe.actions)
-        rows = th.arange(n_exe, device=self.device)
-        lengths = traj.lengths
-        z_g = g_all[rows, lengths]  # g(tau^exp) of each transition's trial
-        z_f = self._add_encoder_noise(f)
+        g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix in one pass
+        f = policy.encoder(traj.problem_features)  # [N, z]
+        n_exe, owner = len(exe.actions), exe.trajectories
+        z_g = g_all[th.arange(len(g_all), device=self.device), traj.lengths][owner]  # g(tau^exp) of each trial
+        z_f = self._add_encoder_noise(f[owner])
 
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
@@ -818,10 +845,10 @@ class DREAM(TrialOffPolicyAlgorithm):
             next_online = policy.execution_q.q_values(
                 policy.execution_q.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1), z
             )
-            z_f_target = policy.encoder_target(traj.problem_features)
+            z_f_target = policy.encoder_target(traj.problem_features)[owner]
             if self.execution_target_z == "own":
                 z_g_target = target_z_g() if target_z_g is not None else self._target_decoder_z(traj)
-                z_target = th.cat([z_g_target, z_f_target])
+                z_target = th.cat([z_g_target[owner], z_f_target])
             else:  # "encoder": the authors' code, no decoder pass
                 z_target = z_f_target.repeat(2, 1)
             next_target = policy.execution_q_target.q_values(
