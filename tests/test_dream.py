@@ -357,6 +357,7 @@ def test_episode_batches_score_each_transition_as_the_paper_batch_does():
     model.learn(500)
     exe, traj = model._sample_execution(6)
     owner = exe.trajectories.numpy()
+    assert len(owner) > 6  # episodes of several transitions share their trajectory
     one_by_one = exe._replace(slots=exe.slots[owner], trajectories=th.arange(len(owner)))
     saved = {k: v.clone() for k, v in model.policy.state_dict().items()}
     optimizer = copy.deepcopy(model.policy.optimizer.state_dict())

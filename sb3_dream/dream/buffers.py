@@ -151,14 +151,14 @@ class ExecutionBuffer:
             self._last_index = grown
         # The env's last transition continues into this one when it is the previous step of the
         # same trial's execution episode (checked before the write, which may reuse its row).
-        prev = self._last_index[envs]
+        prev, steps = self._last_index[envs], np.asarray(transitions["steps"])
         safe = np.maximum(prev, 0)
         linked = (
             (prev >= 0)
-            & (transitions["steps"] > 0)
+            & (steps > 0)
             & (self.slots[safe] == transitions["slots"])
             & (self.generations[safe] == transitions["generations"])
-            & (self.steps[safe] == np.asarray(transitions["steps"]) - 1)
+            & (self.steps[safe] == steps - 1)
         )
         for key, value in transitions.items():
             getattr(self, key)[idx] = value
@@ -209,7 +209,7 @@ class ExecutionBuffer:
         the links were kept): within a trial, a transition continues the one written before it
         when its step is the next."""
         n = len(self)
-        age = (np.arange(n) - (self.pos if self.full else 0)) % self.capacity if n else np.arange(0)
+        age = (np.arange(n) - (self.pos if self.full else 0)) % self.capacity
         order = np.lexsort((age, self.generations[:n], self.slots[:n]))  # by trial, then by writing order
         links = np.full(self.capacity, -1, dtype=np.int64)
         a, b = order[:-1], order[1:]
