@@ -509,6 +509,37 @@ def test_execution_instruction_mlp_off_makes_the_first_layer_additive_in_the_rec
         DREAM("MetaBandit-v0", policy_kwargs=dict(execution_instruction_mlp=0))
 
 
+def test_execution_weight_decay_shrinks_the_execution_q_network_alone(tmp_path):
+    model = DREAM("MetaCook-v0", seed=0, learning_rate=1e-3, policy_kwargs=dict(execution_weight_decay=0.5))
+    policy = model.policy
+
+    def step_on_zero_gradients():  # Adam's step is then 0: what moves a weight is the decay alone
+        before = {name: [p.detach().clone() for p in net.parameters()] for name, net in nets.items()}
+        for p in policy.parameters():
+            p.grad = th.zeros_like(p)
+        policy.optimizer.step()
+        return {name: [(b, p.detach()) for b, p in zip(before[name], net.parameters())] for name, net in nets.items()}
+
+    nets = {"encoder": policy.encoder, "decoder": policy.decoder, "execution_q": policy.execution_q}
+    moved = step_on_zero_gradients()
+    assert all(th.allclose(a, b * (1 - 1e-3 * 0.5)) for b, a in moved["execution_q"])
+    assert all(th.equal(a, b) for name in ("encoder", "decoder") for b, a in moved[name])
+    model.save(tmp_path / "decay.zip")
+    loaded = DREAM.load(tmp_path / "decay.zip")
+    assert loaded.policy.execution_weight_decay == 0.5
+    policy, nets = loaded.policy, {"execution_q": loaded.policy.execution_q}
+    assert all(th.allclose(a, b * (1 - 1e-3 * 0.5)) for b, a in step_on_zero_gradients()["execution_q"])
+    # The paper's Adam by default: no decay anywhere.
+    policy = DREAM("MetaCook-v0", seed=0).policy
+    nets = {"execution_q": policy.execution_q}
+    assert all(th.equal(a, b) for b, a in step_on_zero_gradients()["execution_q"])
+    for bad in (-0.1, "0.1", True):
+        with pytest.raises(ValueError, match="execution_weight_decay must be a number >= 0"):
+            DREAM("MetaBandit-v0", policy_kwargs=dict(execution_weight_decay=bad))
+    with pytest.raises(ValueError, match="execution_weight_decay needs the default optimizer"):
+        DREAM("MetaBandit-v0", policy_kwargs=dict(execution_weight_decay=0.1, optimizer_kwargs=dict(weight_decay=1)))
+
+
 def test_exploration_time_input_is_an_option_fed_the_step_within_the_exploration_episode(tmp_path):
     starts = dict(exploration_learning_starts=5, execution_learning_starts=5)
     env = make_vec_env("MetaBus-v0", n_envs=2, seed=0)

@@ -183,7 +183,10 @@ class DREAM(TrialOffPolicyAlgorithm):
         sees the step within its episode, so a greedy policy need not repeat itself on a second
         visit to a state; default False, the paper's network), ``execution_instruction_mlp``
         (default True, the paper's network; False lets the execution Q compose unseen recipes from
-        their parts, see :class:`~sb3_dream.dream.policies.ExecutionQNetwork`), ``z_dim``.
+        their parts, see :class:`~sb3_dream.dream.policies.ExecutionQNetwork`),
+        ``execution_weight_decay`` (default 0, the paper's Adam; > 0 decays the execution
+        Q-network's weights, AdamW-style, see :class:`~sb3_dream.dream.policies.DreamPolicy`),
+        ``z_dim``.
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
