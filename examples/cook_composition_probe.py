@@ -240,7 +240,10 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
     th.manual_seed(seed)
     q_net = q_network(variant, env.observation_space)
     encoder = ProblemEncoder(env.problem_nvec, Z_DIM)
-    optimizer = th.optim.Adam([*q_net.parameters(), *encoder.parameters()], lr=args.lr)
+    # AdamW: Adam with decoupled weight decay; with --weight-decay 0 (the default) it is Adam.
+    optimizer = th.optim.AdamW(
+        [*q_net.parameters(), *encoder.parameters()], lr=args.lr, weight_decay=args.weight_decay
+    )
     generator = th.Generator().manual_seed(seed)
     targets = data["targets"]
     start = time.perf_counter()
@@ -257,7 +260,7 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
         optimizer.step()
     seconds = time.perf_counter() - start
     setting = dict(variant=variant, targets=args.targets, actions=args.actions, lr=args.lr,
-                   batch_size=args.batch_size, seed=seed, steps=args.steps, final_loss=f"{loss.item():.6f}")
+                   weight_decay=args.weight_decay, batch_size=args.batch_size, seed=seed, steps=args.steps, final_loss=f"{loss.item():.6f}")
     results = []
     for split in SPLITS:
         got = greedy_returns(q_net, encoder, pairs[split])
@@ -282,6 +285,10 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--steps", type=int, default=20000, help="gradient steps")
     parser.add_argument("--batch-size", type=int, default=512)
+    parser.add_argument(
+        "--weight-decay", type=float, default=0.0,
+        help="decoupled weight decay (AdamW) on the Q-network and the encoder; 0 is plain Adam",
+    )
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     parser.add_argument(
         "--targets", default="optimal", choices=("optimal", "bootstrapped"),
@@ -300,6 +307,8 @@ def main() -> None:
             parser.error(f"--{option.replace('_', '-')} must be positive, got {getattr(args, option)}")
     if not args.lr > 0:
         parser.error(f"--lr must be positive, got {args.lr}")
+    if not args.weight_decay >= 0:
+        parser.error(f"--weight-decay must be non-negative, got {args.weight_decay}")
     th.set_num_threads(1)
     env = gym.make("MetaCook-v0").unwrapped
     pairs = {split: split_pairs(env, split) for split in SPLITS}
