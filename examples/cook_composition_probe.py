@@ -27,7 +27,8 @@ Closer to what DQN does: ``--targets bootstrapped`` regresses onto r + gamma max
 the network itself, recomputed every ``--target-update`` steps (a target network's hard sync),
 instead of Q*; ``--actions one`` teaches one uniformly drawn action per sampled state (a replay
 transition) instead of all; ``--lr`` and ``--batch-size`` set Adam's step and the batch (DREAM's
-are 1e-4 and 32). What then still differs from a DREAM run: the data (every state of every
+are 1e-4 and 32); ``--weight-decay`` adds AdamW's decoupled weight decay (DREAM's option
+``execution_weight_decay`` decays the execution Q-network alone). What then still differs from a DREAM run: the data (every state of every
 training pair here, the states the agent visits there), z (exact here; f(T) with noise or the
 decoder's g there) and the time input.
 """
