@@ -28,9 +28,9 @@ the network itself, recomputed every ``--target-update`` steps (a target network
 instead of Q*; ``--actions one`` teaches one uniformly drawn action per sampled state (a replay
 transition) instead of all; ``--lr`` and ``--batch-size`` set Adam's step and the batch (DREAM's
 are 1e-4 and 32); ``--weight-decay`` adds AdamW's decoupled weight decay (DREAM's option
-``execution_weight_decay`` decays the execution Q-network alone). What then still differs from a DREAM run: the data (every state of every
-training pair here, the states the agent visits there), z (exact here; f(T) with noise or the
-decoder's g there) and the time input.
+``execution_weight_decay`` decays the execution Q-network alone). What then still differs from a
+DREAM run: the data (every state of every training pair here, the states the agent visits there),
+z (exact here; f(T) with noise or the decoder's g there) and the time input.
 """
 
 from __future__ import annotations
@@ -261,7 +261,8 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
         optimizer.step()
     seconds = time.perf_counter() - start
     setting = dict(variant=variant, targets=args.targets, actions=args.actions, lr=args.lr,
-                   weight_decay=args.weight_decay, batch_size=args.batch_size, seed=seed, steps=args.steps, final_loss=f"{loss.item():.6f}")
+                   weight_decay=args.weight_decay, batch_size=args.batch_size, seed=seed, steps=args.steps,
+                   final_loss=f"{loss.item():.6f}")
     results = []
     for split in SPLITS:
         got = greedy_returns(q_net, encoder, pairs[split])

@@ -510,30 +510,30 @@ def test_execution_instruction_mlp_off_makes_the_first_layer_additive_in_the_rec
 
 
 def test_execution_weight_decay_shrinks_the_execution_q_network_alone(tmp_path):
-    model = DREAM("MetaCook-v0", seed=0, learning_rate=1e-3, policy_kwargs=dict(execution_weight_decay=0.5))
-    policy = model.policy
-
-    def step_on_zero_gradients():  # Adam's step is then 0: what moves a weight is the decay alone
-        before = {name: [p.detach().clone() for p in net.parameters()] for name, net in nets.items()}
+    def step_on_zero_gradients(policy, nets):  # Adam's step is then 0: only the decay moves a weight
+        before = [[p.detach().clone() for p in net.parameters()] for net in nets]
         for p in policy.parameters():
             p.grad = th.zeros_like(p)
         policy.optimizer.step()
-        return {name: [(b, p.detach()) for b, p in zip(before[name], net.parameters())] for name, net in nets.items()}
+        return [list(zip(b, net.parameters())) for b, net in zip(before, nets)]
 
-    nets = {"encoder": policy.encoder, "decoder": policy.decoder, "execution_q": policy.execution_q}
-    moved = step_on_zero_gradients()
-    assert all(th.allclose(a, b * (1 - 1e-3 * 0.5)) for b, a in moved["execution_q"])
-    assert all(th.equal(a, b) for name in ("encoder", "decoder") for b, a in moved[name])
+    def shrunk(pairs):  # each weight times (1 - lr * decay), lr 1e-3, decay 0.5
+        return all(th.allclose(p.detach(), b * (1 - 1e-3 * 0.5)) for b, p in pairs)
+
+    model = DREAM("MetaCook-v0", seed=0, learning_rate=1e-3, policy_kwargs=dict(execution_weight_decay=0.5))
+    policy = model.policy
+    execution_q, encoder, decoder = step_on_zero_gradients(
+        policy, (policy.execution_q, policy.encoder, policy.decoder)
+    )
+    assert shrunk(execution_q)
+    assert all(th.equal(p.detach(), b) for b, p in encoder + decoder)
     model.save(tmp_path / "decay.zip")
-    loaded = DREAM.load(tmp_path / "decay.zip")
-    assert loaded.policy.execution_weight_decay == 0.5
-    policy, nets = loaded.policy, {"execution_q": loaded.policy.execution_q}
-    assert all(th.allclose(a, b * (1 - 1e-3 * 0.5)) for b, a in step_on_zero_gradients()["execution_q"])
-    # The paper's Adam by default: no decay anywhere.
-    policy = DREAM("MetaCook-v0", seed=0).policy
-    nets = {"execution_q": policy.execution_q}
-    assert all(th.equal(a, b) for b, a in step_on_zero_gradients()["execution_q"])
-    for bad in (-0.1, "0.1", True):
+    loaded = DREAM.load(tmp_path / "decay.zip").policy
+    assert loaded.execution_weight_decay == 0.5
+    assert shrunk(step_on_zero_gradients(loaded, (loaded.execution_q,))[0])
+    paper = DREAM("MetaCook-v0", seed=0).policy  # the paper's Adam by default: no decay anywhere
+    assert all(th.equal(p.detach(), b) for b, p in step_on_zero_gradients(paper, (paper.execution_q,))[0])
+    for bad in (-0.1, "0.1", True, float("inf")):
         with pytest.raises(ValueError, match="execution_weight_decay must be a number >= 0"):
             DREAM("MetaBandit-v0", policy_kwargs=dict(execution_weight_decay=bad))
     with pytest.raises(ValueError, match="execution_weight_decay needs the default optimizer"):

@@ -22,6 +22,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from dream_envs.core import check_non_negative
 from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder, relu_mlp
 from sb3_dream.common.recurrent import DuelingHead
 
@@ -286,10 +287,7 @@ class DreamPolicy(BasePolicy):
             # parameter tensor (rounded differently from torch's per-parameter loop; see the
             # README's Speed section). optimizer_kwargs with "fused" or "foreach" choose for themselves.
             self.optimizer_kwargs = {**self.optimizer_kwargs, "fused": True}
-        decay = execution_weight_decay
-        if isinstance(decay, bool) or not (isinstance(decay, (int, float, np.number)) and decay >= 0):
-            raise ValueError(f"execution_weight_decay must be a number >= 0, got {execution_weight_decay!r}")
-        self.execution_weight_decay = float(execution_weight_decay)
+        self.execution_weight_decay = check_non_negative("execution_weight_decay", execution_weight_decay)
         execution_params = [*self.encoder.parameters(), *self.decoder.parameters(), *self.execution_q.parameters()]
         if self.execution_weight_decay == 0:
             self.optimizer = self.optimizer_class(execution_params, lr=lr_schedule(1), **self.optimizer_kwargs)
