@@ -292,7 +292,7 @@ class MetaCookEnv(TrialEnv):
     is within 2 steps of the pot, so finishing the recipe always pays more. With
     ``undo_reward=-0.25`` (the paper's penalty read as replacing the step's) the pair nets 0, so
     such a loop costs only discounting: a DQN execution policy trained that way learned to loop
-    pickup/drop at a fridge until the horizon (see the README's MetaCook results).
+    pickup/drop at a fridge until the horizon (see the MetaCook results in docs/results.md).
 
     **Termination.** An inner episode ends when the recipe is done (stage 4), on the end-episode
     action, or after ``horizon`` steps. In reward-free exploration only the last two apply. The

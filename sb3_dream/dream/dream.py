@@ -159,8 +159,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         one runs the execution update (their networks and optimizers are disjoint once the rewards
         are computed; the execution step waits for that). The same computations and the same
         results as sequential updates (tested), so it changes the speed only: about 1.2-1.6x
-        faster updates when a second CPU core is free for this run (see the README's Speed
-        section), slower when it is not (several runs sharing the cores: the experiment runner
+        faster updates when a second CPU core is free for this run (see docs/speed.md),
+        slower when it is not (several runs sharing the cores: the experiment runner
         turns it off when it runs more than one at once). ``"auto"`` (default): on when the
         networks are on the CPU and this process may run on more than one core.
     :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
@@ -168,7 +168,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         g(tau^exp) for the loss with z from g and the target encoder's f(T) for the loss with z from
         f. ``"encoder"``: the target encoder's f(T) for both, as in the authors' code (their target
         network always embedded the problem ID); it saves the target decoder's LSTM pass over the
-        execution batch's trajectories (see the README's Speed section).
+        execution batch's trajectories (see docs/speed.md).
     :param execution_sampling: what one execution update learns from. ``"transitions"`` (default,
         the paper's Algorithm 1): ``batch_size`` transitions drawn uniformly from B_exe, each with
         its own trial's exploration trajectory. ``"episodes"`` (the authors' code, which samples its
@@ -176,7 +176,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         transition of each; the decoder still reads ``batch_size`` trajectories (one per episode,
         shared by its transitions), so an update learns from up to the horizon's length times more
         execution transitions for a modest increase in its cost (the execution Q-network's passes
-        grow, the decoder's do not; see the README's Speed section). The bottleneck and the decoder
+        grow, the decoder's do not; see docs/speed.md). The bottleneck and the decoder
         loss see the same ``batch_size`` trials either way.
     :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
         Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also

@@ -99,7 +99,7 @@ class ExecutionQNetwork(nn.Module):
     no training recipe had. Regressed onto the optimal Q, the (128, 128) network then cooked the
     held-out recipes in 87% of their kitchens against 36% with the MLP (10 seeds each), and onto
     its own bootstrapped targets as with a target network in 89% against 3% (3 seeds each;
-    ``examples/cook_composition_probe.py``). Measured DREAM runs with it are in the README.
+    ``examples/cook_composition_probe.py``). Measured DREAM runs with it are in docs/results.md.
     """
 
     TIME_EMBED_DIM = 16
@@ -226,7 +226,7 @@ class DreamPolicy(BasePolicy):
     ``execution_weight_decay`` (default 0, the paper's plain Adam) > 0 decays Q^exe's weights, and
     only those, by ``lr * execution_weight_decay`` per step, apart from the gradient (AdamW's
     decoupled weight decay): a regulariser for the composition of unseen instructions from their
-    parts, which the training split cannot otherwise reward (see the README's MetaCook results).
+    parts, which the training split cannot otherwise reward (see the MetaCook results in docs/results.md).
     The encoder and the decoder are not decayed: the bottleneck already bounds f, and g regresses
     onto it.
     """
@@ -284,8 +284,8 @@ class DreamPolicy(BasePolicy):
 
         if optimizer_class is th.optim.Adam and not {"fused", "foreach"} & set(self.optimizer_kwargs):
             # Adam's fused kernel: the paper's Adam, one call per step instead of about 25 per
-            # parameter tensor (rounded differently from torch's per-parameter loop; see the
-            # README's Speed section). optimizer_kwargs with "fused" or "foreach" choose for themselves.
+            # parameter tensor (rounded differently from torch's per-parameter loop; see
+            # docs/speed.md). optimizer_kwargs with "fused" or "foreach" choose for themselves.
             self.optimizer_kwargs = {**self.optimizer_kwargs, "fused": True}
         self.execution_weight_decay = check_non_negative("execution_weight_decay", execution_weight_decay)
         execution_params = [*self.encoder.parameters(), *self.decoder.parameters(), *self.execution_q.parameters()]

@@ -10,7 +10,7 @@ stay the paper's:
 * ``eps_decay_steps`` 250K -> 30K per policy: epsilon-greedy reaches 0.01 after 30K steps of each;
 * ``target_update_interval`` 5000 -> 1000 updates: targets follow faster on small problems.
 
-Measured side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see the README).
+Measured side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results.md).
 """
 
 from typing import Any, Dict
