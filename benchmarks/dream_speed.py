@@ -117,6 +117,8 @@ VARIANTS = {
     "loop-adam": {"policy_kwargs": {"optimizer_kwargs": {"fused": False}}},  # torch's per-parameter loop
     "encoder-target": {"execution_target_z": "encoder"},
     "episodes": {"execution_sampling": "episodes"},  # whole execution episodes per update
+    # the authors' final execution Q, an LSTM over each execution episode (needs whole episodes)
+    "recurrent-execution": {"execution_sampling": "episodes", "policy_kwargs": {"execution_recurrent": True}},
 }
 
 

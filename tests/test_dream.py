@@ -491,6 +491,69 @@ def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_ep
         )
 
 
+def test_recurrent_execution_q_learns_each_episode_as_acting_unrolled_it(tmp_path):
+    # The update's fused pass over a batch of whole episodes gives every s and s' the LSTM output
+    # that a step-by-step unroll from zeros at the episode's start gives.
+    starts = dict(exploration_learning_starts=5, execution_learning_starts=5)
+    env = make_vec_env("MetaBus-v0", n_envs=2, seed=0, env_kwargs={"n_exec_episodes": 2})
+    model = DREAM(
+        env,
+        seed=0,
+        execution_sampling="episodes",
+        policy_kwargs=dict(execution_recurrent=True, execution_time_input=True),
+        **{**FAST, **starts},
+    )
+    net = model.policy.execution_q
+    assert net.recurrent and net.lstm.hidden_size == 64
+    initial = {k: v.clone() for k, v in net.lstm.state_dict().items()}
+    model.learn(600)
+    assert model._n_updates > 0
+    assert any(not th.equal(initial[k], v) for k, v in net.lstm.state_dict().items())  # it learns
+    exe, _ = model._sample_execution(8)
+    with th.no_grad():
+        fused, fused_next = model._episode_embeddings(net, exe)
+        episodes, steps = exe.trajectories.numpy(), exe.steps.numpy()
+        assert steps.max() > 2
+        for e in range(8):
+            rows = np.flatnonzero(episodes == e)[np.argsort(steps[episodes == e])]
+            assert (steps[rows] == np.arange(len(rows))).all()  # the whole episode, from its start
+            hidden, outs = None, []
+            for j in rows:  # s_0 .. s_{L-1}, then the last transition's s'
+                x = net.embed(exe.states[[j]], exe.instructions[[j]], exe.steps[[j]])
+                out, hidden = net.recur(x[:, None], hidden)
+                outs.append(out[0, 0])
+            last = rows[-1:]
+            s_next = net.embed(exe.next_states[last], exe.instructions[last], exe.steps[last] + 1)
+            outs.append(net.recur(s_next[:, None], hidden)[0][0, 0])
+            th.testing.assert_close(fused[rows], th.stack(outs[:-1]), rtol=1e-5, atol=1e-6)
+            th.testing.assert_close(fused_next[rows], th.stack(outs[1:]), rtol=1e-5, atol=1e-6)
+
+    # Acting: the LSTM state starts from zeros at each execution episode, carried step to step.
+    trial_env = gym.make("MetaBus-v0", n_exec_episodes=2)
+    obs, _ = trial_env.reset(seed=3)
+    state, start, unrolled, done = None, True, None, False
+    while not done:
+        action, state = model.predict(obs, state, np.array([start]), deterministic=True)
+        if obs["phase"] == 1:
+            with th.no_grad():
+                x = net.embed(*(th.as_tensor(obs[k])[None] for k in ("obs", "instruction")), th.as_tensor(state[9]))
+                unrolled = net.recur(x[:, None], None if obs["episode_start"] else unrolled)[1]
+            np.testing.assert_allclose(state[-2], unrolled[0].numpy(), rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(state[-1], unrolled[1].numpy(), rtol=1e-5, atol=1e-6)
+        obs, _, terminated, truncated, _ = trial_env.step(action)
+        start, done = False, terminated or truncated
+    assert unrolled is not None
+
+    model.save(tmp_path / "recurrent.zip")
+    loaded = DREAM.load(tmp_path / "recurrent.zip")
+    assert loaded.policy.execution_recurrent and loaded.policy.execution_q.recurrent
+    assert not DREAM("MetaBandit-v0").policy.execution_q.recurrent  # the paper's feed-forward network
+    with pytest.raises(ValueError, match="execution_recurrent=True needs execution_sampling='episodes'"):
+        DREAM("MetaBus-v0", policy_kwargs=dict(execution_recurrent=True))
+    with pytest.raises(ValueError, match="execution_recurrent must be True or False, got 'yes'"):
+        DREAM("MetaBus-v0", execution_sampling="episodes", policy_kwargs=dict(execution_recurrent="yes"))
+
+
 def test_execution_instruction_mlp_off_makes_the_first_layer_additive_in_the_recipe_parts(tmp_path):
     state, z = th.tensor([[1, 1, 3, 0, 0, 0]]), th.randn(1, 64)
 
@@ -606,7 +669,12 @@ def test_bad_input():
 
 
 @pytest.mark.slow
-def test_dream_learns_the_bandit_that_needs_exploration():
+@pytest.mark.parametrize(
+    "options",
+    [{}, dict(execution_sampling="episodes", policy_kwargs=dict(execution_recurrent=True))],
+    ids=["paper", "recurrent-execution"],
+)
+def test_dream_learns_the_bandit_that_needs_exploration(options):
     """MetaBandit |A| = 8: only the informative action reveals which of 8 actions pays (chance 1/8)."""
     model = DREAM(
         "MetaBandit-v0",
@@ -615,6 +683,7 @@ def test_dream_learns_the_bandit_that_needs_exploration():
         execution_learning_starts=50,
         eps_decay_steps=4000,
         target_update_interval=200,
+        **options,
     )
     model.learn(8000)
     result = evaluate_meta(model, "MetaBandit-v0", n_trials=100)

@@ -57,7 +57,7 @@ from sb3_dream.dream.buffers import (
     ExplorationBuffer,
     TrajectoryBatch,
 )
-from sb3_dream.dream.policies import DreamPolicy
+from sb3_dream.dream.policies import DreamPolicy, ExecutionQNetwork
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 
@@ -88,11 +88,13 @@ class TrialState:
     z: np.ndarray  # [n, z_dim] the trial's z for execution (valid where z_ready)
     z_ready: np.ndarray  # [n] bool
     execution_step: np.ndarray  # [n] the step within the current execution episode
+    # execution LSTM state, each [1, n, size] (size 0 for the paper's feed-forward execution Q)
+    execution_hidden: Tuple[th.Tensor, th.Tensor]
 
     def reset(self, idx: np.ndarray) -> None:
         """Forget the trials of envs ``idx``: a new trial starts there."""
-        self.hidden[0][:, idx] = 0.0
-        self.hidden[1][:, idx] = 0.0
+        for hidden in (*self.hidden, *self.execution_hidden):
+            hidden[:, idx] = 0.0
         self.length[idx] = 0
         self.z_ready[idx] = False
         self.execution_step[idx] = 0
@@ -100,7 +102,7 @@ class TrialState:
         self.prev_rewards[idx] = 0.0
 
     def as_tuple(self) -> Tuple[np.ndarray, ...]:
-        h, c = (t.detach().cpu().numpy() for t in self.hidden)
+        h, c, exe_h, exe_c = (t.detach().cpu().numpy() for t in (*self.hidden, *self.execution_hidden))
         return (
             h,
             c,
@@ -112,13 +114,15 @@ class TrialState:
             self.z,
             self.z_ready,
             self.execution_step,
+            exe_h,
+            exe_c,
         )
 
     @classmethod
     def from_tuple(cls, state: Tuple[np.ndarray, ...], device: th.device) -> "TrialState":
-        h, c, *rest = state
-        hidden = (th.as_tensor(h, device=device).clone(), th.as_tensor(c, device=device).clone())
-        return cls(hidden, *(np.array(a, copy=True) for a in rest))
+        h, c, *rest, exe_h, exe_c = state
+        tensor = lambda a: th.as_tensor(a, device=device).clone()  # noqa: E731
+        return cls((tensor(h), tensor(c)), *(np.array(a, copy=True) for a in rest), (tensor(exe_h), tensor(exe_c)))
 
 
 class DREAM(TrialOffPolicyAlgorithm):
@@ -184,7 +188,9 @@ class DREAM(TrialOffPolicyAlgorithm):
         visit to a state; default False, the paper's network), ``execution_instruction_mlp``
         (default True, the paper's network; False lets the execution Q compose unseen recipes from
         their parts, see :class:`~sb3_dream.dream.policies.ExecutionQNetwork`),
-        ``execution_weight_decay`` (default 0, the paper's Adam; > 0 decays the execution
+        ``execution_recurrent`` (default False, the paper's feed-forward network; True runs an LSTM
+        of 64 over each execution episode, as the authors' final code does, and needs
+        ``execution_sampling="episodes"``), ``execution_weight_decay`` (default 0, the paper's Adam; > 0 decays the execution
         Q-network's weights, AdamW-style, see :class:`~sb3_dream.dream.policies.DreamPolicy`),
         ``z_dim``.
     """
@@ -343,6 +349,11 @@ class DREAM(TrialOffPolicyAlgorithm):
             self.observation_space, self.action_space, self.lr_schedule, **self.policy_kwargs
         )
         self.policy = self.policy.to(self.device)
+        if self.policy.execution_recurrent and self.execution_sampling != "episodes":
+            raise ValueError(
+                "policy_kwargs execution_recurrent=True needs execution_sampling='episodes' (a recurrent "
+                f"execution Q learns from whole execution episodes), got execution_sampling={self.execution_sampling!r}"
+            )
         exploration = ExplorationBuffer(
             self.buffer_size,
             self.exploration_horizon,
@@ -373,10 +384,10 @@ class DREAM(TrialOffPolicyAlgorithm):
     def new_trial_state(self, n_envs: int) -> TrialState:
         h = self.exploration_horizon
         obs_space = self.observation_space["obs"]
-        hidden_size = self.policy.exploration_q.hidden_size
-        zeros = lambda: th.zeros(1, n_envs, hidden_size, device=self.device)  # noqa: E731
+        zeros = lambda size: th.zeros(1, n_envs, size, device=self.device)  # noqa: E731
+        hidden_size, execution_size = self.policy.exploration_q.hidden_size, self.policy.execution_q.recurrent_size
         return TrialState(
-            hidden=(zeros(), zeros()),
+            hidden=(zeros(hidden_size), zeros(hidden_size)),
             states=np.zeros((n_envs, h + 1, *obs_space.shape), dtype=self.replay_buffer.exploration.states.dtype),
             actions=np.zeros((n_envs, h), dtype=np.int64),
             prev_actions=np.zeros((n_envs, h + 1), dtype=np.int64),
@@ -385,6 +396,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             z=np.zeros((n_envs, self.z_dim), dtype=np.float32),
             z_ready=np.zeros(n_envs, dtype=bool),
             execution_step=np.zeros(n_envs, dtype=np.int64),
+            execution_hidden=(zeros(execution_size), zeros(execution_size)),
         )
 
     # ------------------------------------------------------------------ epsilons
@@ -471,15 +483,24 @@ class DREAM(TrialOffPolicyAlgorithm):
                 # use g of the trajectory without its last transition.
                 state.z[missing] = self._decode(state, missing, np.maximum(state.length[missing] - 1, 0))
                 state.z_ready[missing] = True
+            first = None
             if "episode_start" in obs:  # the step within the execution episode
                 first = np.asarray(obs["episode_start"]).reshape(n)[execute].astype(bool)
                 state.execution_step[execute] = np.where(first, 0, state.execution_step[execute] + 1)
-            q = self.policy.execution_q(
+            net = self.policy.execution_q
+            embedding = net.embed(
                 self._obs_tensor(obs["obs"][execute]),
                 self._obs_tensor(obs["instruction"][execute]),
-                self._obs_tensor(state.z[execute]),
                 self._obs_tensor(state.execution_step[execute]) if self.policy.execution_time_input else None,
             )
+            if net.recurrent:  # one LSTM step, from zeros where an execution episode starts
+                assert first is not None  # _batch_observation requires episode_start
+                keep = self._obs_tensor(~first)[None, :, None].to(embedding.dtype)
+                hidden = tuple(h[:, execute] * keep for h in state.execution_hidden)
+                out, (h, c) = net.recur(embedding[:, None], hidden)
+                state.execution_hidden[0][:, execute], state.execution_hidden[1][:, execute] = h, c
+                embedding = out[:, 0]
+            q = net.q_values(embedding, self._obs_tensor(state.z[execute]))
             chosen = q.argmax(dim=-1).cpu().numpy()
             actions[execute] = self._epsilon_greedy(chosen, execution_eps, n_actions)
         return actions
@@ -558,7 +579,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         return states
 
     def _batch_observation(self, observation: Dict[str, Any]) -> Tuple[Dict[str, np.ndarray], bool]:
-        required = REQUIRED_KEYS + (("episode_start",) if self.policy.execution_time_input else ())
+        needs_start = self.policy.execution_time_input or self.policy.execution_recurrent
+        required = REQUIRED_KEYS + (("episode_start",) if needs_start else ())
         if not isinstance(observation, dict) or any(k not in observation for k in required):
             raise ValueError(f"observation must be a dict with the trial keys {required}")
         obs = {k: np.asarray(v) for k, v in observation.items()}
@@ -842,12 +864,17 @@ class DREAM(TrialOffPolicyAlgorithm):
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
         actions, rewards, dones = exe.actions.repeat(2), exe.rewards.repeat(2), exe.dones.repeat(2)
-        embedding = policy.execution_q.embed(exe.states, exe.instructions, exe.steps).repeat(2, 1)
-        q = policy.execution_q.q_values(embedding, z).gather(1, actions[:, None]).squeeze(1)
+        net, next_embedding = policy.execution_q, None
+        if net.recurrent:  # one LSTM pass gives both s's and s''s inputs
+            embedding, next_embedding = self._episode_embeddings(net, exe)
+            next_embedding = next_embedding.detach()
+        else:
+            embedding = net.embed(exe.states, exe.instructions, exe.steps)
+        q = net.q_values(embedding.repeat(2, 1), z).gather(1, actions[:, None]).squeeze(1)
         with th.no_grad():
-            next_online = policy.execution_q.q_values(
-                policy.execution_q.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1), z
-            )
+            if next_embedding is None:
+                next_embedding = self._next_embedding(net, exe)
+            next_online = net.q_values(next_embedding.repeat(2, 1), z)
             z_f_target = policy.encoder_target(traj.problem_features)[owner]
             if self.execution_target_z == "own":
                 z_g_target = target_z_g() if target_z_g is not None else self._target_decoder_z(traj)
@@ -855,8 +882,7 @@ class DREAM(TrialOffPolicyAlgorithm):
             else:  # "encoder": the authors' code, no decoder pass
                 z_target = z_f_target.repeat(2, 1)
             next_target = policy.execution_q_target.q_values(
-                policy.execution_q_target.embed(exe.next_states, exe.instructions, exe.steps + 1).repeat(2, 1),
-                z_target,
+                self._next_embedding(policy.execution_q_target, exe).repeat(2, 1), z_target
             )
             best = next_online.argmax(dim=1, keepdim=True)
             target = rewards + self.gamma * (1.0 - dones) * next_target.gather(1, best).squeeze(1)
@@ -887,6 +913,35 @@ class DREAM(TrialOffPolicyAlgorithm):
             "f_norm_sq": f_norm.mean().item(),
             "bottleneck_loss": float(bottleneck.item()),
         }
+
+    def _next_embedding(self, net: ExecutionQNetwork, exe: ExecutionBatch) -> th.Tensor:
+        """What ``net`` feeds its body for each transition's s' ([B, D])."""
+        if net.recurrent:
+            return self._episode_embeddings(net, exe)[1]
+        return net.embed(exe.next_states, exe.instructions, exe.steps + 1)
+
+    @staticmethod
+    def _episode_embeddings(net: ExecutionQNetwork, exe: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
+        """A recurrent ``net``'s LSTM outputs for each transition's s and s' ([B, D] each).
+
+        The batch holds whole episodes (``execution_sampling="episodes"``: transition j is step
+        ``steps[j]`` of episode ``trajectories[j]``), so each episode's states s_0 .. s_L (s_L: its
+        last transition's s') are laid out as one [E, L+1] sequence, and one fused LSTM pass from
+        zeros gives h_t for s_t and h_{t+1} for s'.
+        """
+        episode, step = exe.trajectories, exe.steps
+        n_episodes, horizon = int(episode.max()) + 1, int(step.max()) + 1
+        length = th.zeros(n_episodes, dtype=step.dtype, device=step.device).scatter_reduce(
+            0, episode, step + 1, reduce="amax"
+        )
+        last = step + 1 == length[episode]  # where s' is the episode's last state, no later s holds it
+        embedding = net.embed(exe.states, exe.instructions, step)
+        last_state = net.embed(exe.next_states[last], exe.instructions[last], step[last] + 1)
+        sequence = embedding.new_zeros(n_episodes, horizon + 1, embedding.shape[1])
+        sequence = sequence.index_put((episode, step), embedding)
+        sequence = sequence.index_put((episode[last], step[last] + 1), last_state)
+        out, _ = net.recur(sequence)
+        return out[episode, step], out[episode, step + 1]
 
     def bottleneck_loss(self, f: th.Tensor) -> th.Tensor:
         """Equation 3 with the threshold K: mean of max(||f(T)||^2, K), so only norms above K get a

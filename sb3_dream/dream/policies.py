@@ -4,7 +4,7 @@
 * :class:`TrajectoryDecoder` g_omega: exploration trajectory tau^exp -> z, one fused LSTM pass
   giving g(tau_:t) for every prefix t = 0 .. T.
 * :class:`ExecutionQNetwork` Q^exe(s, i, z): feed-forward dueling Q-network (optionally also given
-  the step index within the execution episode).
+  the step index within the execution episode, or recurrent over the execution episode).
 * :class:`ExplorationQNetwork` Q^exp(s_t, tau_:t): recurrent dueling Q-network over its own history.
 
 :class:`DreamPolicy` holds them and their target copies.
@@ -100,6 +100,12 @@ class ExecutionQNetwork(nn.Module):
     held-out recipes in 87% of their kitchens against 36% with the MLP (10 seeds each), and onto
     its own bootstrapped targets as with a target network in 89% against 3% (3 seeds each;
     ``examples/cook_composition_probe.py``). Measured DREAM runs with it are in docs/results.md.
+
+    ``recurrent_size`` > 0 (an option, the authors' final code; the paper's network is
+    feed-forward) runs an LSTM of that size over the execution episode's [e(s); e(i)] and feeds its
+    output, concatenated with z, to the body: Q^exe(s_t, i, z, h_t) with h_t the episode so far.
+    z is not an LSTM input, so one pass over an episode serves both of the update's z sources.
+    The LSTM starts from zeros at each execution episode's first step.
     """
 
     TIME_EMBED_DIM = 16
@@ -112,6 +118,7 @@ class ExecutionQNetwork(nn.Module):
         hidden_sizes: Sequence[int] = (64,),
         time_steps: int = 0,
         instruction_mlp: bool = True,
+        recurrent_size: int = 0,
     ) -> None:
         super().__init__()
         positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
@@ -126,18 +133,27 @@ class ExecutionQNetwork(nn.Module):
             self.instruction_embed = MultiDiscreteEmbedder(instruction_nvec)
         else:
             self.instruction_embed = MultiDiscreteEmbedder(instruction_nvec, hidden_dims=())
-        in_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim + z_dim
+        embed_dim = self.state_embed.embed_dim + self.instruction_embed.embed_dim
         self.time_steps = int(time_steps)
         self.time_embed: Optional[nn.Embedding] = None
         if self.time_steps > 0:
             self.time_embed = nn.Embedding(self.time_steps + 1, self.TIME_EMBED_DIM)
-            in_dim += self.TIME_EMBED_DIM
-        self.body, width = relu_mlp(in_dim, [int(h) for h in hidden_sizes])
+            embed_dim += self.TIME_EMBED_DIM
+        self.recurrent_size = int(recurrent_size)
+        self.lstm: Optional[nn.LSTM] = None
+        if self.recurrent_size > 0:
+            self.lstm = nn.LSTM(embed_dim, self.recurrent_size, batch_first=True)
+            embed_dim = self.recurrent_size
+        self.body, width = relu_mlp(embed_dim + z_dim, [int(h) for h in hidden_sizes])
         self.head = DuelingHead(width, n_actions)
+
+    @property
+    def recurrent(self) -> bool:
+        return self.lstm is not None
 
     def embed(self, states: th.Tensor, instructions: th.Tensor, steps: Optional[th.Tensor] = None) -> th.Tensor:
         """[e(s); e(i)] (and e(t) with ``time_steps``): computed once and shared by the rows that
-        differ only in z."""
+        differ only in z. A recurrent network's LSTM runs over these (:meth:`recur`)."""
         parts = [self.state_embed(states), self.instruction_embed(instructions)]
         if self.time_embed is not None:
             if steps is None:
@@ -145,13 +161,25 @@ class ExecutionQNetwork(nn.Module):
             parts.append(self.time_embed(steps.long().clamp(0, self.time_steps)))
         return th.cat(parts, dim=-1)
 
+    def recur(self, embeddings: th.Tensor, hidden: Optional[LSTMState] = None) -> Tuple[th.Tensor, LSTMState]:
+        """The LSTM over ``embeddings`` [B, T, D] (one fused unroll) from ``hidden`` (default zeros):
+        the outputs [B, T, recurrent_size] that :meth:`q_values` takes, and the final state."""
+        if self.lstm is None:
+            raise ValueError("this execution Q-network is feed-forward (recurrent_size=0)")
+        return self.lstm(embeddings, hidden)
+
     def q_values(self, embedding: th.Tensor, z: th.Tensor) -> th.Tensor:
+        """Q from :meth:`embed`'s output (feed-forward) or :meth:`recur`'s (recurrent) and z."""
         return self.head(self.body(th.cat([embedding, z], dim=-1)))
 
     def forward(
         self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor, steps: Optional[th.Tensor] = None
     ) -> th.Tensor:
-        return self.q_values(self.embed(states, instructions, steps), z)
+        """Q of single steps; a recurrent network takes them as first steps of their episodes."""
+        embedding = self.embed(states, instructions, steps)
+        if self.lstm is not None:
+            embedding = self.recur(embedding[:, None])[0][:, 0]
+        return self.q_values(embedding, z)
 
 
 class ExplorationQNetwork(nn.Module):
@@ -223,6 +251,10 @@ class DreamPolicy(BasePolicy):
     inner-episode horizon) is set by DREAM from the env. ``optimizer_kwargs``: Adam runs fused
     (``fused=True``) unless they set ``fused`` or ``foreach``.
 
+    ``execution_recurrent`` (default False, the paper's feed-forward network): Q^exe runs an LSTM of
+    64 over the execution episode, as in the authors' final code (see :class:`ExecutionQNetwork`);
+    DREAM then learns from whole execution episodes (``execution_sampling="episodes"``).
+
     ``execution_weight_decay`` (default 0, the paper's plain Adam) > 0 decays Q^exe's weights, and
     only those, by ``lr * execution_weight_decay`` per step, apart from the gradient (AdamW's
     decoupled weight decay): a regulariser for the composition of unseen instructions from their
@@ -230,6 +262,8 @@ class DreamPolicy(BasePolicy):
     The encoder and the decoder are not decayed: the bottleneck already bounds f, and g regresses
     onto it.
     """
+
+    EXECUTION_LSTM_SIZE = 64  # the authors' LSTMCell over the execution episode
 
     def __init__(
         self,
@@ -242,6 +276,7 @@ class DreamPolicy(BasePolicy):
         execution_time_input: bool = False,
         exploration_time_input: bool = False,
         execution_instruction_mlp: bool = True,
+        execution_recurrent: bool = False,
         execution_weight_decay: float = 0.0,
         horizon: Optional[int] = None,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
@@ -258,7 +293,12 @@ class DreamPolicy(BasePolicy):
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
         self.decoder = TrajectoryDecoder(observation_space["obs"], n_actions, z_dim)
         time_inputs = {"execution_time_input": execution_time_input, "exploration_time_input": exploration_time_input}
-        for name, flag in {**time_inputs, "execution_instruction_mlp": execution_instruction_mlp}.items():
+        flags = {
+            **time_inputs,
+            "execution_instruction_mlp": execution_instruction_mlp,
+            "execution_recurrent": execution_recurrent,
+        }
+        for name, flag in flags.items():
             if not isinstance(flag, (bool, np.bool_)):
                 raise ValueError(f"{name} must be True or False, got {flag!r}")
         for name, flag in time_inputs.items():  # the clock's embedding has one row per step
@@ -268,8 +308,15 @@ class DreamPolicy(BasePolicy):
         self.exploration_time_input = bool(exploration_time_input)
         time_steps = int(horizon) if execution_time_input else 0
         self.execution_instruction_mlp = bool(execution_instruction_mlp)
+        self.execution_recurrent = bool(execution_recurrent)
         self.execution_q = ExecutionQNetwork(
-            observation_space, n_actions, z_dim, execution_hidden_sizes, time_steps, self.execution_instruction_mlp
+            observation_space,
+            n_actions,
+            z_dim,
+            execution_hidden_sizes,
+            time_steps,
+            self.execution_instruction_mlp,
+            recurrent_size=self.EXECUTION_LSTM_SIZE if self.execution_recurrent else 0,
         )
         self.execution_hidden_sizes = tuple(int(h) for h in execution_hidden_sizes)  # checked by the network
         time_steps = int(horizon) if exploration_time_input else 0
@@ -331,6 +378,7 @@ class DreamPolicy(BasePolicy):
             execution_time_input=self.execution_time_input,
             exploration_time_input=self.exploration_time_input,
             execution_instruction_mlp=self.execution_instruction_mlp,
+            execution_recurrent=self.execution_recurrent,
             execution_weight_decay=self.execution_weight_decay,
             horizon=self.horizon,
             lr_schedule=self._dummy_schedule,
