@@ -92,14 +92,15 @@ def report(path: pathlib.Path, size: int, threshold: float) -> str:
         f"({curve['wall_clock_s'][last] / 60:.1f} min): {curve['mean'][last]:.3f}"
     ]
     first = first_reaching(curve, threshold)
-    lines.append(
-        f"  first >= {threshold:g}: "
-        + (f"{_steps(first['env_steps'])} ({first['wall_clock_s'] / 60:.1f} min, {first['mean']:.3f})" if first else "none")
-    )
+    crossing = "none"
+    if first:
+        crossing = f"{_steps(first['env_steps'])} ({first['wall_clock_s'] / 60:.1f} min, {first['mean']:.3f})"
+    lines.append(f"  first >= {threshold:g}: {crossing}")
     lines.append(f"  {'window':>12}  {'n':>3}  {'mean':>7}  {'median':>7}  {'lowest':>7}  >= {threshold:g}")
     for w in windows(curve, size, threshold):
         span = f"{_steps(w.start)}-{_steps(w.end)}"
-        lines.append(f"  {span:>12}  {w.n:>3}  {w.mean:>7.3f}  {w.median:>7.3f}  {w.lowest:>7.3f}  {w.reaching} of {w.n}")
+        numbers = f"{w.n:>3}  {w.mean:>7.3f}  {w.median:>7.3f}  {w.lowest:>7.3f}"
+        lines.append(f"  {span:>12}  {numbers}  {w.reaching} of {w.n}")
     return "\n".join(lines)
 
 
