@@ -119,6 +119,8 @@ VARIANTS = {
     "episodes": {"execution_sampling": "episodes"},  # whole execution episodes per update
     # the authors' final execution Q, an LSTM over each execution episode (needs whole episodes)
     "recurrent-execution": {"execution_sampling": "episodes", "policy_kwargs": {"execution_recurrent": True}},
+    # image envs (SignNav3D-v0): every CNN sees the frames average-pooled 2x2
+    "downsample2": {"policy_kwargs": {"image_downsample": 2}},
 }
 
 
@@ -267,6 +269,9 @@ def main() -> None:
     adam.add_argument("--fused-adam", action="store_true", help="optimizer_kwargs fused=True (DREAM's default)")
     adam.add_argument("--loop-adam", action="store_true", help="optimizer_kwargs fused=False: the per-parameter loop")
     parser.add_argument("--device", default="cpu", help="torch device of the networks (cpu, cuda, auto)")
+    parser.add_argument(
+        "--image-downsample", type=int, default=1, help="policy_kwargs image_downsample (image envs; paper: 1)"
+    )
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     parser.add_argument(
         "--compare-updates", type=int, default=0, metavar="ROUNDS", help="time updates of --variants instead"
@@ -303,8 +308,9 @@ def main() -> None:
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads[0]}"
         f" parallel_updates={parallel_updates!r} compile={args.compile}"
         f" execution_target_z={args.execution_target_z} fused Adam={not args.loop_adam} device={args.device}"
+        f" image_downsample={args.image_downsample}"
     )
-    policy_kwargs = {"optimizer_kwargs": {"fused": not args.loop_adam}}
+    policy_kwargs = {"optimizer_kwargs": {"fused": not args.loop_adam}, "image_downsample": args.image_downsample}
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
     for n in args.n_envs:
         r = measure(

@@ -265,6 +265,26 @@ def test_image_trials_train_and_meta_test():
     assert result.returns.shape == (1, 1) and -1.0 <= result.mean <= 1.0
 
 
+def test_image_downsample_pools_every_networks_frames_and_is_saved(tmp_path):
+    small = dict(exploration_learning_starts=2, execution_learning_starts=2, buffer_size=20, execution_buffer_size=200)
+    model = DREAM("SignNav3D-v0", seed=0, batch_size=4, policy_kwargs=dict(image_downsample=2), **small)
+    sizes = []
+    for net in (model.policy.decoder, model.policy.execution_q, model.policy.exploration_q):
+        net.state_embed.cnn.register_forward_hook(lambda m, i, o: sizes.append(tuple(i[0].shape[-2:])))
+    model.learn(40)
+    assert model._n_updates > 0 and sizes and set(sizes) == {(30, 40)}  # 60 x 80 frames, pooled 2x2
+    model.save(tmp_path / "m.zip")
+    loaded = DREAM.load(tmp_path / "m.zip")
+    assert loaded.policy.image_downsample == 2
+    assert all(
+        th.equal(a, b) for a, b in zip(model.policy.state_dict().values(), loaded.policy.state_dict().values())
+    )
+    with pytest.raises(ValueError, match="image_downsample=2 applies to image observations only"):
+        DREAM("MetaBus-v0", policy_kwargs=dict(image_downsample=2))
+    with pytest.raises(ValueError, match="image_downsample must be an integer >= 1, got True"):
+        DREAM("SignNav3D-v0", policy_kwargs=dict(image_downsample=True))
+
+
 @pytest.mark.parametrize("parallel", [False, True])
 def test_decoder_and_bottleneck_learn_from_the_execution_samples_only(parallel):
     # Appendix A: f and g are updated "from the same execution replay buffer samples"; on the

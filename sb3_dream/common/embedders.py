@@ -27,6 +27,8 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from torch import nn
 
+from dream_envs.core import check_positive_int
+
 
 def _flatten_batch(x: th.Tensor, event_shape: Sequence[int]) -> tuple[th.Tensor, tuple[int, ...]]:
     """Split ``x`` into its leading batch dims and its event dims; return ``x`` as ``[N, *event]``."""
@@ -140,15 +142,33 @@ class ImageEmbedder(nn.Module):
     observations with ``VecTransposeImage``; a channel-last space is transposed here too).
     ReLU follows every layer (the paper says "in between" the convolutions; a ReLU after the last
     convolution and after the linear layer makes the stack a proper nonlinear feature extractor).
+
+    The convolutions run on channels-last tensors: the same arithmetic, and on a CPU (oneDNN) about
+    1.5x faster than channel-first for these frames, forward and backward.
+
+    ``downsample`` > 1 (an option; the paper's CNN sees the full frame) average-pools each frame by
+    that factor before the convolutions (2: 80 x 60 -> 40 x 30), which cuts the convolutions'
+    arithmetic about 4x; colours, such as the sign's, survive the averaging.
     """
 
-    def __init__(self, space: spaces.Box, channels: int = 32, embed_dim: int = 128, normalize: bool = True) -> None:
+    MIN_SIDE = 25  # the fewest pixels per side the three strided convolutions take
+
+    def __init__(
+        self,
+        space: spaces.Box,
+        channels: int = 32,
+        embed_dim: int = 128,
+        normalize: bool = True,
+        downsample: int = 1,
+    ) -> None:
         super().__init__()
         shape = tuple(space.shape)
         self.channels_first = bool(is_image_space_channels_first(space))
         self.event_shape = shape
         c = shape[0] if self.channels_first else shape[-1]
         self.normalize = normalize
+        self.downsample = check_positive_int("image_downsample", downsample)
+        self.pool: nn.Module = nn.AvgPool2d(self.downsample) if self.downsample > 1 else nn.Identity()
         self.cnn = nn.Sequential(
             nn.Conv2d(c, channels, kernel_size=5, stride=2),
             nn.ReLU(),
@@ -158,9 +178,17 @@ class ImageEmbedder(nn.Module):
             nn.ReLU(),
             nn.Flatten(),
         )
+        chw = self._chw(shape)
+        pooled = (chw[1] // self.downsample, chw[2] // self.downsample)
+        if min(pooled) < self.MIN_SIDE:
+            raise ValueError(
+                f"image_downsample={self.downsample} leaves {pooled[1]} x {pooled[0]} pixels of the "
+                f"{chw[2]} x {chw[1]} frames, too few for the CNN (it needs {self.MIN_SIDE} on each side): "
+                "use a smaller factor"
+            )
         with th.no_grad():
-            probe = th.zeros(1, *self._chw(shape))
-            n_flat = self.cnn(probe).shape[1]
+            probe = th.zeros(1, *chw)
+            n_flat = self.cnn(self.pool(probe)).shape[1]
         self.linear = nn.Sequential(nn.Linear(n_flat, embed_dim), nn.ReLU())
         self.embed_dim = embed_dim
 
@@ -169,12 +197,13 @@ class ImageEmbedder(nn.Module):
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         flat, batch_shape = _flatten_batch(x, self.event_shape)
-        flat = flat.float()
-        if self.normalize:
-            flat = flat / 255.0
         if not self.channels_first:
             flat = flat.permute(0, 3, 1, 2)
-        return self.linear(self.cnn(flat)).reshape(*batch_shape, self.embed_dim)
+        # channels-last while still uint8 (a quarter of the bytes to move); float() keeps the layout
+        flat = flat.contiguous(memory_format=th.channels_last).float()
+        if self.normalize:
+            flat = flat / 255.0
+        return self.linear(self.cnn(self.pool(flat))).reshape(*batch_shape, self.embed_dim)
 
 
 def make_state_embedder(
@@ -186,6 +215,7 @@ def make_state_embedder(
     discrete_embed_dim: Optional[int] = None,
     name: str = "obs",
     normalize_images: bool = True,
+    image_downsample: int = 1,
 ) -> nn.Module:
     """The paper's embedder for a state-like space (``obs``, ``instruction``, a problem ID).
 
@@ -195,6 +225,8 @@ def make_state_embedder(
     The returned module has an ``embed_dim`` attribute.
 
     :param name: the Dict key (only used in error messages).
+    :param image_downsample: images only: average-pool each frame by this factor first (see
+        :class:`ImageEmbedder`; 1, the paper's CNN, by default).
     """
     if isinstance(space, spaces.MultiDiscrete):
         if np.any(np.asarray(space.start) != 0):
@@ -211,7 +243,9 @@ def make_state_embedder(
         emb.event_shape = ()  # a Discrete value has no event dims
         return emb
     if isinstance(space, spaces.Box) and is_image_space(space, check_channels=False, normalized_image=False):
-        return ImageEmbedder(space, channels=image_channels, embed_dim=image_embed_dim, normalize=normalize_images)
+        return ImageEmbedder(
+            space, channels=image_channels, embed_dim=image_embed_dim, normalize=normalize_images, downsample=image_downsample
+        )
     if isinstance(space, (spaces.Box, spaces.MultiBinary)):
         return BoxMLPEmbedder(space.shape, hidden_dims)
     raise ValueError(
