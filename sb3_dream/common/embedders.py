@@ -199,11 +199,12 @@ class ImageEmbedder(nn.Module):
         flat, batch_shape = _flatten_batch(x, self.event_shape)
         if not self.channels_first:
             flat = flat.permute(0, 3, 1, 2)
-        # channels-last while still uint8 (a quarter of the bytes to move); float() keeps the layout
-        flat = flat.contiguous(memory_format=th.channels_last).float()
+        if self.downsample > 1:  # pool first: the copy below then moves a fraction of the pixels
+            flat = self.pool(flat.float())
+        flat = flat.to(dtype=th.float32, memory_format=th.channels_last)
         if self.normalize:
             flat = flat / 255.0
-        return self.linear(self.cnn(self.pool(flat))).reshape(*batch_shape, self.embed_dim)
+        return self.linear(self.cnn(flat)).reshape(*batch_shape, self.embed_dim)
 
 
 def make_state_embedder(
