@@ -158,7 +158,7 @@ def main() -> None:
     for name, agent in agents.items():
         result = evaluate_meta(  # by ID: a model plays 16 trials side by side (the env object: one at a time)
             agent,
-            args.env,
+            env if name == "optimal (scripted)" else args.env,  # the oracle reads its own env (SignNav3D's pose)
             n_trials=args.trials,
             split=args.split,
             n_exec_episodes=args.n_exec_episodes,

@@ -155,6 +155,17 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
         meta_test.load_model(str(tmp_path / "dqn.zip"))
 
 
+def test_meta_test_plays_the_sign_oracle_on_the_env_it_reads(tmp_path):
+    # SignNav3D's oracle navigates by its env's pose: it must play on that env, not on a fresh copy
+    from sb3_dream import DREAM
+
+    DREAM("SignNav3D-v0", seed=0, buffer_size=20, execution_buffer_size=20).save(tmp_path / "sign.zip")
+    out = run_example(
+        "meta_test.py", "--model", str(tmp_path / "sign.zip"), "--env", "SignNav3D-v0", "--trials", "2", cwd=tmp_path
+    )
+    assert "optimal (scripted): execution return 1.000 ± 0.000 over 2 trials" in out
+
+
 def test_custom_trial_env_script(tmp_path):
     out = run_example("custom_trial_env.py", "--steps", "120", "--n-envs", "2", "--eval-trials", "10", cwd=tmp_path)
     assert "oracle: execution return 1.000" in out and "DREAM: execution return" in out
