@@ -130,6 +130,11 @@ def main() -> None:
         choices=("model", "oracle", "random"),
         help="--gains: whose explorations the model's reward pays (default: its own)",
     )
+    parser.add_argument(
+        "--outcomes",
+        action="store_true",
+        help="also print the shares of execution episodes with a positive, negative and zero return",
+    )
     parser.add_argument("--trace", type=int, default=0, metavar="K", help="print the first K explorations' actions")
     args = parser.parse_args()
     if args.trace < 0:
@@ -167,6 +172,9 @@ def main() -> None:
             exhaustive=args.exhaustive,
         )
         print(f"  {name:>20}: {result.summary()}")
+        if args.outcomes:
+            above, below, zero = result.return_shares()
+            print(f"  {'':>20}  return > 0 in {above:.0%}, < 0 in {below:.0%}, 0 in {zero:.0%} of execution episodes")
     if args.trace:
         action_names = env.unwrapped.action_names
         for name, agent in agents.items():

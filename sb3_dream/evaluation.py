@@ -173,6 +173,15 @@ class MetaEvalResult:
     def mean_exploration_length(self) -> float:
         return float(self._mean_ci(self.exploration_lengths.reshape(-1, 1))[0][0])
 
+    def return_shares(self) -> Tuple[float, float, float]:
+        """Shares of execution episodes whose return is above, below and at zero (weighted as
+        :attr:`mean` is): where rewards are sparse and signed (SignNav3D's +1 for the right object,
+        -1 for a wrong one, 0 for none) they tell a wrong choice from no choice, which a mean of 0
+        does not."""
+        signs = np.stack([self.returns > 0, self.returns < 0, self.returns == 0]).mean(axis=2)  # [3, n_trials]
+        above, below, zero = signs @ self.trial_weights
+        return float(above), float(below), float(zero)
+
     def summary(self) -> str:
         per_ep = ", ".join(format_mean_ci(m, c) for m, c in zip(self.per_episode_mean, self.per_episode_ci))
         trials = f"{self.n_trials} trials"

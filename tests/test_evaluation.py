@@ -85,6 +85,12 @@ def test_result_statistics():
     r = MetaEvalResult(np.array([[1.0, 0.0], [0.0, 0.0]]), np.array([2.0, 4.0]), np.array([0, 1]), 0.1)
     assert r.mean == 0.25 and r.per_episode_mean.tolist() == [0.5, 0.0] and r.mean_exploration_length == 3.0
     assert r.per_episode_ci[1] == 0.0 and r.per_episode_ci[0] > 0 and "0.250" in r.summary()
+    # A wrong choice (-1) and no choice (0) are told apart: one episode of four each above and below.
+    signed = MetaEvalResult(np.array([[1.0, 0.0], [-1.0, 0.0]]), np.array([2.0, 4.0]), np.array([0, 1]), 0.1)
+    assert signed.mean == 0.0 and signed.return_shares() == (0.25, 0.25, 0.5)
+    # Exhaustive: each trial weighs its pair's probability (0.75, 0.25).
+    weighted = MetaEvalResult(np.array([[1.0], [-1.0]]), np.zeros(2), np.array([0, 1]), 0.1, np.array([0.75, 0.25]))
+    assert weighted.return_shares() == (0.75, 0.25, 0.0)
 
 
 def test_bad_input():

@@ -107,10 +107,14 @@ def test_meta_test_gains_on_metacook_name_each_fridge_opening(tmp_path):
 def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     model, _ = trained
     out = run_example(
-        "meta_test.py", "--model", str(model), "--env-kwargs", "variant='map'", "--trials", "4", cwd=tmp_path
+        "meta_test.py", "--model", str(model), "--env-kwargs", "variant='map'", "--trials", "4", "--outcomes",
+        cwd=tmp_path,
     )
     assert "split=test (24 problems), 4 trials" in out
     assert "DREAM: execution return" in out and "optimal (scripted): execution return 0.800" in out
+    # --outcomes: the oracle's every episode pays 0.8, under its summary line
+    oracle_outcomes = out.split("optimal (scripted): ")[1].splitlines()[1].strip()
+    assert oracle_outcomes == "return > 0 in 100%, < 0 in 0%, 0 in 0% of execution episodes"
     diagnose_args = ["--model", str(model), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
     out = run_example("meta_test.py", *diagnose_args, "--exploration", "--trace", "2", "--gains", cwd=tmp_path)
     # --gains: Equation 5's reward of each exploration step, per step, and the trial's information gain
