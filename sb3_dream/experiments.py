@@ -90,6 +90,7 @@ import concurrent.futures
 import csv
 import dataclasses
 import importlib
+import inspect
 import json
 import multiprocessing
 import os
@@ -333,7 +334,14 @@ def load_with_overrides(algo: str, path: pathlib.Path, env: Any, config: RunConf
             given = {k: stored.get(k) for k in value}
             if json.dumps(value, default=str) != json.dumps(given, default=str):
                 raise ValueError(f"policy_kwargs={value!r} differs from the checkpoint's {given!r}")
-        elif key not in saved or not isinstance(saved[key], (bool, int, float, str, type(None))):
+        elif key not in saved:
+            # An option newer than the checkpoint: the checkpoint was made with its default.
+            parameter = inspect.signature(algorithm_class(algo)).parameters.get(key)
+            if parameter is None or parameter.default is inspect.Parameter.empty:
+                raise ValueError(f"{key} cannot be changed when going on from a checkpoint")
+            if parameter.default != value:
+                changed[key] = value
+        elif not isinstance(saved[key], (bool, int, float, str, type(None))):
             raise ValueError(f"{key} cannot be changed when going on from a checkpoint")
         elif saved[key] != value:
             changed[key] = value

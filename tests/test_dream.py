@@ -44,6 +44,29 @@ def test_defaults_are_the_papers():
     assert model.exploration_epsilon == 1.0 == model.execution_epsilon
 
 
+def test_execution_epsilon_can_have_its_own_schedule(tmp_path):
+    shared = DREAM("MetaBandit-v0", eps_decay_steps=1000, exploration_final_eps=0.05)
+    shared._n_exploration_steps = shared._n_execution_steps = 2000
+    assert shared.exploration_epsilon == 0.05 == shared.execution_epsilon  # the paper's: one schedule
+
+    model = DREAM(
+        "MetaBandit-v0", eps_decay_steps=1000, exploration_final_eps=0.05,
+        execution_final_eps=0.2, execution_eps_decay_steps=100,
+    )  # fmt: skip
+    model._n_exploration_steps = model._n_execution_steps = 50
+    assert model.exploration_epsilon == pytest.approx(1.0 - 0.95 * 0.05)
+    assert model.execution_epsilon == pytest.approx(1.0 - 0.8 * 0.5)
+    model._n_exploration_steps = model._n_execution_steps = 2000
+    assert (model.exploration_epsilon, model.execution_epsilon) == (0.05, 0.2)
+    model.save(tmp_path / "model.zip")
+    loaded = DREAM.load(tmp_path / "model.zip")
+    assert (loaded.exploration_epsilon, loaded.execution_epsilon) == (0.05, 0.2)
+    with pytest.raises(ValueError, match="execution_final_eps must be in"):
+        DREAM("MetaBandit-v0", execution_final_eps=1.5)
+    with pytest.raises(ValueError, match="execution_eps_decay_steps must be >= 0"):
+        DREAM("MetaBandit-v0", execution_eps_decay_steps=-1)
+
+
 def test_exploration_reward_is_the_information_gain():
     model = DREAM("MetaBandit-v0", reward_penalty=0.01)
     f = th.tensor([[1.0, 0.0]])

@@ -7,9 +7,11 @@ import dataclasses
 import json
 import os
 import time
+import zipfile
 
 import numpy as np
 import pytest
+from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dream import experiments
 from sb3_dream.experiments import (
@@ -337,6 +339,26 @@ def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_
     assert record["status"] == "done"
     info = json.loads(run.info_path(out).read_text())
     assert info["init_from"] == {"out": str(parent_out), "env_steps": 200} and info["resumed_from"] == 300
+
+    # An option newer than a checkpoint (absent from its saved data) can be set when going on from it.
+    checkpoint = run.model_path(out)
+    with zipfile.ZipFile(checkpoint) as saved:
+        files = {name: saved.read(name) for name in saved.namelist()}
+    data = json.loads(files["data"])
+    del data["execution_final_eps"]
+    files["data"] = json.dumps(data).encode()
+    older = tmp_path / "older.zip"
+    with zipfile.ZipFile(older, "w") as doctored:
+        for name, content in files.items():
+            doctored.writestr(name, content)
+    newer = tuple(sorted({**dict(overrides), "execution_final_eps": 0.2}.items()))
+    env = make_vec_env(run.env.env_id, n_envs=1, seed=0, env_kwargs=run.env.env_kwargs)
+    model = experiments.load_with_overrides("dream", older, env, dataclasses.replace(child, dream_kwargs=newer))
+    assert model.execution_final_eps == 0.2 and model.target_update_interval == 7
+    with pytest.raises(ValueError, match="no_such_option cannot be changed"):
+        experiments.load_with_overrides(
+            "dream", older, env, dataclasses.replace(child, dream_kwargs=(*newer, ("no_such_option", 1)))
+        )
 
     # What cannot go on: other networks, other evaluation settings, no parent checkpoint.
     wide = tuple(sorted({**dict(kwargs), "policy_kwargs": {"execution_hidden_sizes": (32,)}}.items()))

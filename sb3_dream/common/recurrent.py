@@ -41,12 +41,19 @@ class LinearEpsilonSchedule:
     absolute env steps, so a run's schedule does not depend on how long it is.
     """
 
-    def __init__(self, initial: float = 1.0, final: float = 0.01, steps: int = 500_000) -> None:
-        for name, value in (("initial", initial), ("final", final)):
+    def __init__(
+        self,
+        initial: float = 1.0,
+        final: float = 0.01,
+        steps: int = 500_000,
+        names: Tuple[str, str, str] = ("exploration_initial_eps", "exploration_final_eps", "exploration_steps"),
+    ) -> None:
+        """``names``: the arguments the three values came from, for the error messages."""
+        for name, value in zip(names[:2], (initial, final)):
             if not 0.0 <= value <= 1.0:
-                raise ValueError(f"exploration_{name}_eps must be in [0, 1], got {value!r}")
+                raise ValueError(f"{name} must be in [0, 1], got {value!r}")
         if steps < 0:
-            raise ValueError(f"exploration_steps must be >= 0, got {steps!r}")
+            raise ValueError(f"{names[2]} must be >= 0, got {steps!r}")
         self.initial, self.final, self.steps = float(initial), float(final), int(steps)
 
     def __call__(self, num_timesteps: int) -> float:

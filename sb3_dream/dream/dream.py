@@ -144,8 +144,15 @@ class DREAM(TrialOffPolicyAlgorithm):
     :param exploration_learning_starts: trials collected before the exploration policy learns.
     :param execution_learning_starts: trials collected before the execution side learns.
     :param exploration_initial_eps: epsilon of both policies at the start.
-    :param exploration_final_eps: epsilon of both policies after the decay.
+    :param exploration_final_eps: epsilon of both policies after the decay (of the exploration
+        policy alone when ``execution_final_eps`` is set).
     :param eps_decay_steps: steps of *each* policy over which its epsilon decays (250K each).
+    :param execution_final_eps: the execution policy's own final epsilon; None (default) is
+        ``exploration_final_eps``, the paper's shared schedule. A deviation for envs whose execution
+        learns from rare rewards long after its epsilon has decayed (SignNav3D's pickups, see
+        docs/results.md), leaving the exploration policy's trajectories as they were.
+    :param execution_eps_decay_steps: execution steps over which the execution epsilon decays; None
+        (default) is ``eps_decay_steps``.
     :param reward_penalty: c in Equation 5, subtracted from every exploration reward.
     :param encoder_variance: rho^2 of F(z | T) = N(f(T), rho^2 I).
     :param bottleneck: False gives the paper's "DREAM (no bottleneck)" ablation: no noise on f
@@ -215,6 +222,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         exploration_initial_eps: float = 1.0,
         exploration_final_eps: float = 0.01,
         eps_decay_steps: int = 250_000,
+        execution_final_eps: Optional[float] = None,
+        execution_eps_decay_steps: Optional[int] = None,
         reward_penalty: float = 0.01,
         encoder_variance: float = 0.1,
         bottleneck: bool = True,
@@ -289,6 +298,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.exploration_initial_eps = exploration_initial_eps
         self.exploration_final_eps = exploration_final_eps
         self.eps_decay_steps = eps_decay_steps
+        self.execution_final_eps = execution_final_eps
+        self.execution_eps_decay_steps = execution_eps_decay_steps
         self.reward_penalty = reward_penalty
         self.encoder_variance = encoder_variance
         self.bottleneck = bottleneck
@@ -334,8 +345,20 @@ class DREAM(TrialOffPolicyAlgorithm):
     def _setup_model(self) -> None:
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
+        shared = ("exploration_initial_eps", "exploration_final_eps", "eps_decay_steps")
         self._epsilon_schedule = LinearEpsilonSchedule(
-            self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps
+            self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps, names=shared
+        )
+        own_final, own_steps = self.execution_final_eps, self.execution_eps_decay_steps
+        self._execution_epsilon_schedule = LinearEpsilonSchedule(
+            self.exploration_initial_eps,
+            self.exploration_final_eps if own_final is None else own_final,
+            self.eps_decay_steps if own_steps is None else own_steps,
+            names=(
+                shared[0],
+                shared[1] if own_final is None else "execution_final_eps",
+                shared[2] if own_steps is None else "execution_eps_decay_steps",
+            ),
         )
         self._rng = np.random.default_rng(self.seed)
         # A new dict: the caller's policy_kwargs stay as given (the experiment runner compares them).
@@ -408,7 +431,7 @@ class DREAM(TrialOffPolicyAlgorithm):
     @property
     def execution_epsilon(self) -> float:
         """Epsilon of the execution policy (decays with execution-episode steps)."""
-        return self._epsilon_schedule(self._n_execution_steps)
+        return self._execution_epsilon_schedule(self._n_execution_steps)
 
     # ------------------------------------------------------------------ acting
     def _obs_tensor(self, x: np.ndarray) -> th.Tensor:
