@@ -349,16 +349,13 @@ class DREAM(TrialOffPolicyAlgorithm):
         self._epsilon_schedule = LinearEpsilonSchedule(
             self.exploration_initial_eps, self.exploration_final_eps, self.eps_decay_steps, names=shared
         )
+        # A shared value here was checked just above, so an error here names an execution option.
         own_final, own_steps = self.execution_final_eps, self.execution_eps_decay_steps
         self._execution_epsilon_schedule = LinearEpsilonSchedule(
             self.exploration_initial_eps,
             self.exploration_final_eps if own_final is None else own_final,
             self.eps_decay_steps if own_steps is None else own_steps,
-            names=(
-                shared[0],
-                shared[1] if own_final is None else "execution_final_eps",
-                shared[2] if own_steps is None else "execution_eps_decay_steps",
-            ),
+            names=(shared[0], "execution_final_eps", "execution_eps_decay_steps"),
         )
         self._rng = np.random.default_rng(self.seed)
         # A new dict: the caller's policy_kwargs stay as given (the experiment runner compares them).
