@@ -12,19 +12,20 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import heapq
 import io
 import math
 import os
 import sys
 from types import SimpleNamespace
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv
+from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, play_trials
 
 # ---------------------------------------------------------------------------------------- geometry
 # The authors' layout (miniworld's ``Sign(size=10)``): a 10 x 6.5 top room where the agent starts,
@@ -388,6 +389,22 @@ class SignNav3DEnv(TrialEnv):
         """The agent's heading, radians (Miniworld's convention: 0 faces +x, turning left adds)."""
         return float(self._world.agent.dir)
 
+    def sign_pixels(self) -> int:
+        """How many pixels of the agent's current view show the sign's letters: those that differ
+        between the view with the blue sign and the view with the red one (both rendered, then the
+        problem's restored). 0 when the sign is out of view. For reports and tests; the agent never
+        calls it."""
+        sign = self._world.sign
+        shown = sign.shown
+        try:
+            views = []
+            for k in range(len(SIGN_COLOURS)):
+                sign.shown = k
+                views.append(self._world.render_obs())
+        finally:
+            sign.shown = shown
+        return int(np.count_nonzero(np.any(views[0] != views[1], axis=-1)))
+
     def object_positions(self) -> List[Tuple[str, str, np.ndarray]]:
         """``(type, colour, (x, z))`` of the six objects (a fixed map, the same in every problem)."""
         return [(kind, colour, np.array(ent.pos[[0, 2]], dtype=float)) for kind, colour, ent in self._world.objects]
@@ -461,6 +478,89 @@ class SignNav3DEnv(TrialEnv):
     # ------------------------------------------------------------------ oracle
     def oracle(self) -> "SignNavOracle":
         return SignNavOracle(self)
+
+
+@dataclasses.dataclass
+class SignExplorationReport:
+    """What an agent's SignNav3D exploration episodes showed it, one entry per trial: the most pixels
+    of the sign's letters in one view (what DREAM's decoder needs to tell the problems apart) and
+    whether the agent got past the barrier at all. The sign counts as *read* in a trial whose
+    exploration showed at least ``min_pixels`` of them in one view (default 20, as many strongly
+    coloured pixels as :func:`sign_colour_from_image` needs). The sign can be read from the top room
+    too: from its southern edge, facing east, through the opening to the left room (up to about 160
+    letter pixels at (4, 6), which :func:`sign_colour_from_image` reads right), as in the authors'
+    layout.
+
+    Counted over the states the agent acted in during exploration; the last state of an exploration
+    that the horizon or a touch ended is not among them (it is when the end-episode action ends it).
+    """
+
+    sign_pixels: np.ndarray  # [n_trials] the most letter pixels in one exploration view
+    past_barrier: np.ndarray  # [n_trials] bool
+    exploration_lengths: np.ndarray  # [n_trials]
+    execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
+    min_pixels: int = 20
+
+    @property
+    def sign_seen(self) -> np.ndarray:
+        """[n_trials] bool: the exploration showed at least ``min_pixels`` of the sign's letters."""
+        return self.sign_pixels >= self.min_pixels
+
+    def summary(self) -> str:
+        by_sight = "; ".join(
+            f"{label}: {self.execution_returns[mask].mean():.3f} ({int(mask.sum())} trials)"
+            for label, mask in (("read", self.sign_seen), ("not read", ~self.sign_seen))
+            if mask.any()
+        )
+        return (
+            f"sign read (>= {self.min_pixels} pixels of its letters in a view) in {self.sign_seen.mean():.0%} of "
+            f"explorations (any of them in view: {np.mean(self.sign_pixels > 0):.0%}), past the barrier in "
+            f"{self.past_barrier.mean():.0%}, exploration length {self.exploration_lengths.mean():.1f}, "
+            f"execution return {self.execution_returns.mean():.3f}; execution return with the sign {by_sight}"
+        )
+
+
+class _SignViewRecorder(ScriptedAgent):
+    """Passes ``agent``'s actions through and notes, in exploration, the most pixels of the sign in one
+    view and whether the agent is past the barrier (read from ``env``, which the agent does not see)."""
+
+    def __init__(self, agent: ScriptedAgent, env: SignNav3DEnv) -> None:
+        self.agent, self.env = agent, env
+
+    def reset(self) -> None:
+        self.agent.reset()
+        self.sign_pixels, self.past_barrier = 0, False
+
+    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        if int(obs["phase"]) == EXPLORATION:
+            self.sign_pixels = max(self.sign_pixels, self.env.sign_pixels())
+            self.past_barrier = self.past_barrier or bool(self.env.agent_position[1] > LOWER_ROOMS_Z[0])
+        return self.agent.act(obs, info)
+
+
+def exploration_report(
+    env: SignNav3DEnv,
+    agent: ScriptedAgent,
+    n_trials: int = 100,
+    seed: int = 0,
+    problem_ids: Optional[Sequence[int]] = None,
+    instructions: Optional[Sequence[Any]] = None,
+    min_pixels: int = 20,
+) -> SignExplorationReport:
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    use ``sb3_dream.evaluation.as_trial_agent(model)``) and report what its explorations saw.
+    ``problem_ids`` and ``instructions`` pin trials as in :func:`~dream_envs.core.play_trials`."""
+    sign_nav = env.unwrapped
+    if not isinstance(sign_nav, SignNav3DEnv):
+        raise ValueError(f"env must be a SignNav3D-v0 env, got {type(sign_nav).__name__}")
+    recorder = _SignViewRecorder(agent, sign_nav)
+    rows = []
+    for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
+        rows.append(
+            (recorder.sign_pixels, recorder.past_barrier, result["exploration_length"], np.mean(result["execution_returns"]))
+        )
+    pixels, past, lengths, returns = (np.array(column) for column in zip(*rows))
+    return SignExplorationReport(pixels, past.astype(bool), lengths, returns.astype(float), min_pixels)
 
 
 class _Planner:

@@ -33,6 +33,9 @@ colored and gray routes ridden while exploring, whether it read the map
 (:func:`dream_envs.bus.exploration_report`). MetaCook-v0: fridges opened while exploring, and per
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
 stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
+SignNav3D-v0: whether the sign was ever in view while exploring and whether the agent got past the
+barrier, with the execution return of the trials that saw the sign and of those that did not
+(:func:`dream_envs.sign_nav.exploration_report`).
 
 ``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials (with
 ``--diagnose``, on the trials diagnose already played, not a second time): the
@@ -116,7 +119,7 @@ def main() -> None:
         help="DREAM: also meta-test on z = f(T), on z ~ N(f(T), rho^2 I) and on g of the optimal exploration",
     )
     parser.add_argument(
-        "--exploration", action="store_true", help="MetaBus-v0 and MetaCook-v0: what each agent explores and does"
+        "--exploration", action="store_true", help="MetaBus-v0, MetaCook-v0, SignNav3D-v0: what each agent explores and does"
     )
     parser.add_argument(
         "--gains",
@@ -183,12 +186,15 @@ def main() -> None:
                 actions = [str(a) if action_names is None else action_names[a] for a in trial["exploration_actions"]]
                 print(f"  {name:>20} trial {k}, problem {trial['problem_id']}: {' '.join(actions)}")
     if args.exploration:
-        from dream_envs.bus import exploration_report
-        from dream_envs.cook import behaviour_report
+        from dream_envs import bus, cook, sign_nav
 
-        reports = {"MetaBus-v0": exploration_report, "MetaCook-v0": behaviour_report}
+        reports = {
+            "MetaBus-v0": bus.exploration_report,
+            "MetaCook-v0": cook.behaviour_report,
+            "SignNav3D-v0": sign_nav.exploration_report,
+        }
         if args.env not in reports:
-            raise SystemExit(f"--exploration needs --env MetaBus-v0 or MetaCook-v0, got {args.env}")
+            raise SystemExit(f"--exploration needs --env {', '.join(reports)}, got {args.env}")
         for name, agent in agents.items():
             report = reports[args.env](env, as_trial_agent(agent), n_trials, args.seed, problem_ids, instructions)
             print(f"  {name:>20} exploring: {report.summary()}")

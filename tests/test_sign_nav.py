@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import dream_envs
-from dream_envs import play_trial, public_info, sign_nav
+from dream_envs import ScriptedAgent, play_trial, public_info, sign_nav
 from dream_envs.sign_nav import (
     END_EPISODE,
     MOVE_FORWARD,
@@ -303,6 +303,39 @@ def test_oracle_many_trials():
     finally:
         multi.close()
     assert np.all(np.array(returns) == 1.0)
+
+
+def test_sign_pixels_counts_the_letters_in_view_and_restores_the_view(env):
+    env.reset(seed=0, options={"problem_id": RED})
+    front = view_from(env, SIGN_CENTER[0] - 2.5, SIGN_CENTER[2], 0.0)
+    assert env.sign_pixels() > 100
+    assert env._world.sign.shown == RED and np.array_equal(env._world.render_obs(), front)
+    view_from(env, SIGN_CENTER[0] - 2.5, SIGN_CENTER[2], math.pi)  # back to the sign
+    assert env.sign_pixels() == 0
+    view_from(env, 5.0, 4.0, math.pi / 2)  # the top room, facing north
+    assert env.sign_pixels() == 0
+
+
+class EndExploration(ScriptedAgent):
+    """Ends every inner episode at once: its explorations see only the start."""
+
+    def act(self, obs, info):
+        return END_EPISODE
+
+
+def test_exploration_report_tells_reading_explorers_from_idle_ones(env):
+    reading = sign_nav.exploration_report(env, env.oracle(), n_trials=4, seed=3)
+    assert reading.sign_seen.all() and reading.past_barrier.all()
+    assert (reading.sign_pixels > 100).all() and (reading.execution_returns == 1.0).all()
+    assert "sign read (>= 20 pixels of its letters in a view) in 100% of explorations" in reading.summary()
+
+    idle = sign_nav.exploration_report(env, EndExploration(), n_trials=4, seed=3)
+    assert (idle.sign_pixels == 0).all() and not idle.past_barrier.any()
+    assert (idle.exploration_lengths == 1).all() and (idle.execution_returns == 0.0).all()
+    assert "in 0% of explorations" in idle.summary() and "not read: 0.000 (4 trials)" in idle.summary()
+
+    with pytest.raises(ValueError, match="SignNav3D-v0"):
+        sign_nav.exploration_report(gym.make("MetaBandit-v0"), EndExploration(), n_trials=1)
 
 
 def test_public_info_has_no_problem(env):
