@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, play_trials
+from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_positive_int, play_trials
 
 # ---------------------------------------------------------------------------------------- geometry
 # The authors' layout (miniworld's ``Sign(size=10)``): a 10 x 6.5 top room where the agent starts,
@@ -66,6 +66,10 @@ SIGN_RGB = {"blue": (0, 0, 255), "red": (255, 0, 0)}  # pure colours, as miniwor
 # sample x in [4, 5], z in [4, 6]); positions from which one step could touch an object are redrawn.
 START_REGION = ((3.0, 7.0), (3.3, 6.0))  # (x range, z range)
 START_CLEARANCE = FORWARD_STEP + 0.1
+
+# Strongly coloured pixels it takes to read the sign from a view: the scripted reader's threshold,
+# and the exploration report's for counting the sign as read.
+READ_MIN_PIXELS = 20
 
 HEADLESS_ENV_VAR = "PYOPENGL_PLATFORM"
 
@@ -485,8 +489,8 @@ class SignExplorationReport:
     """What an agent's SignNav3D exploration episodes showed it, one entry per trial: the most pixels
     of the sign's letters in one view (what DREAM's decoder needs to tell the problems apart) and
     whether the agent got past the barrier at all. The sign counts as *read* in a trial whose
-    exploration showed at least ``min_pixels`` of them in one view (default 20, as many strongly
-    coloured pixels as :func:`sign_colour_from_image` needs). The sign can be read from the top room
+    exploration showed at least ``min_pixels`` of them in one view (default :data:`READ_MIN_PIXELS`,
+    as many strongly coloured pixels as :func:`sign_colour_from_image` needs). The sign can be read from the top room
     too: from its southern edge, facing east, through the opening to the left room (up to about 160
     letter pixels at (4, 6), which :func:`sign_colour_from_image` reads right), as in the authors'
     layout.
@@ -499,7 +503,7 @@ class SignExplorationReport:
     past_barrier: np.ndarray  # [n_trials] bool
     exploration_lengths: np.ndarray  # [n_trials]
     execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
-    min_pixels: int = 20
+    min_pixels: int = READ_MIN_PIXELS
 
     @property
     def sign_seen(self) -> np.ndarray:
@@ -545,7 +549,7 @@ def exploration_report(
     seed: int = 0,
     problem_ids: Optional[Sequence[int]] = None,
     instructions: Optional[Sequence[Any]] = None,
-    min_pixels: int = 20,
+    min_pixels: int = READ_MIN_PIXELS,
 ) -> SignExplorationReport:
     """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report what its explorations saw.
@@ -553,6 +557,7 @@ def exploration_report(
     sign_nav = env.unwrapped
     if not isinstance(sign_nav, SignNav3DEnv):
         raise ValueError(f"env must be a SignNav3D-v0 env, got {type(sign_nav).__name__}")
+    min_pixels = check_positive_int("min_pixels", min_pixels)
     recorder = _SignViewRecorder(agent, sign_nav)
     rows = []
     for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
@@ -621,7 +626,7 @@ class _Planner:
         return math.inf
 
 
-def sign_colour_from_image(image: np.ndarray, min_pixels: int = 20) -> Optional[int]:
+def sign_colour_from_image(image: np.ndarray, min_pixels: int = READ_MIN_PIXELS) -> Optional[int]:
     """Read the sign's colour from an RGB view of it: the problem ID (0 blue, 1 red), or None if unsure.
 
     Counts strongly blue and strongly red pixels (the letters); the sky and walls are neither.

@@ -33,9 +33,9 @@ colored and gray routes ridden while exploring, whether it read the map
 (:func:`dream_envs.bus.exploration_report`). MetaCook-v0: fridges opened while exploring, and per
 execution episode whether the recipe was finished, the dish ruined, and how many steps undid a
 stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
-SignNav3D-v0: whether the sign was ever in view while exploring and whether the agent got past the
-barrier, with the execution return of the trials that saw the sign and of those that did not
-(:func:`dream_envs.sign_nav.exploration_report`).
+SignNav3D-v0: in how many explorations the sign was read (at least 20 pixels of its letters in one
+view) and the agent got past the barrier, with the execution return of the trials that read the
+sign and of those that did not (:func:`dream_envs.sign_nav.exploration_report`).
 
 ``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials (with
 ``--diagnose``, on the trials diagnose already played, not a second time): the

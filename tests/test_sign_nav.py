@@ -336,6 +336,8 @@ def test_exploration_report_tells_reading_explorers_from_idle_ones(env):
 
     with pytest.raises(ValueError, match="SignNav3D-v0"):
         sign_nav.exploration_report(gym.make("MetaBandit-v0"), EndExploration(), n_trials=1)
+    with pytest.raises(ValueError, match="min_pixels"):
+        sign_nav.exploration_report(env, EndExploration(), n_trials=1, min_pixels=0)
 
 
 def test_public_info_has_no_problem(env):
