@@ -54,6 +54,10 @@ OBJECT_LAYOUT: Dict[Tuple[str, str], Tuple[float, float]] = {
     ("key", "red"): (1.0, 5.0),
     ("ball", "blue"): (1.0, 9.0),
 }
+# An execution episode's target: the object of the sign's colour and the instruction's type. How it
+# ended: touching the target, touching another object, the end-episode action, or the horizon.
+EXECUTION_TARGETS: Tuple[Tuple[str, str], ...] = tuple((c, k) for c in SIGN_COLOURS for k in OBJECT_TYPES)
+EXECUTION_OUTCOMES = ("right", "wrong", "ended", "timed out")
 OBJECT_HEIGHT = 0.6  # balls and keys are drawn this tall (the authors enlarged the key to 0.6 too)
 BOX_SIZE = 0.8
 
@@ -497,6 +501,10 @@ class SignExplorationReport:
 
     Counted over the states the agent acted in during exploration; the last state of an exploration
     that the horizon or a touch ended is not among them (it is when the end-episode action ends it).
+
+    Each execution episode is also recorded by its *target* (the object of the sign's colour and the
+    instruction's type) and how it ended (:data:`EXECUTION_OUTCOMES`): which objects an execution
+    policy reaches, and whether the others time out (it wanders) or are given up (end action).
     """
 
     sign_pixels: np.ndarray  # [n_trials] the most letter pixels in one exploration view
@@ -504,6 +512,16 @@ class SignExplorationReport:
     exploration_lengths: np.ndarray  # [n_trials]
     execution_returns: np.ndarray  # [n_trials] mean over the trial's execution episodes
     min_pixels: int = READ_MIN_PIXELS
+    execution_targets: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))  # [n_episodes]
+    execution_outcomes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))  # [n_episodes]
+
+    def outcome_counts(self) -> Dict[Tuple[str, str], Dict[str, int]]:
+        """``{(colour, type): {outcome: execution episodes}}`` for every target that was drawn."""
+        counts: Dict[Tuple[str, str], Dict[str, int]] = {}
+        for target, outcome in zip(self.execution_targets, self.execution_outcomes):
+            per_target = counts.setdefault(EXECUTION_TARGETS[target], dict.fromkeys(EXECUTION_OUTCOMES, 0))
+            per_target[EXECUTION_OUTCOMES[outcome]] += 1
+        return dict(sorted(counts.items(), key=lambda item: EXECUTION_TARGETS.index(item[0])))
 
     @property
     def sign_seen(self) -> np.ndarray:
@@ -521,7 +539,19 @@ class SignExplorationReport:
             f"explorations (any of them in view: {np.mean(self.sign_pixels > 0):.0%}), past the barrier in "
             f"{self.past_barrier.mean():.0%}, exploration length {self.exploration_lengths.mean():.1f}, "
             f"execution return {self.execution_returns.mean():.3f}; execution return with the sign {by_sight}"
+            + self.outcomes_summary()
         )
+
+    def outcomes_summary(self) -> str:
+        """``; execution by target (right/wrong/ended/timed out): blue ball 0/0/1/13, ...``, or ""."""
+        counts = self.outcome_counts()
+        if not counts:
+            return ""
+        per_target = ", ".join(
+            f"{colour} {kind} " + "/".join(str(n) for n in per_outcome.values())
+            for (colour, kind), per_outcome in counts.items()
+        )
+        return f"; execution by target ({'/'.join(EXECUTION_OUTCOMES)}): {per_target}"
 
 
 class _SignViewRecorder(ScriptedAgent):
@@ -534,12 +564,29 @@ class _SignViewRecorder(ScriptedAgent):
     def reset(self) -> None:
         self.agent.reset()
         self.sign_pixels, self.past_barrier = 0, False
+        self.execution_targets: List[int] = []  # per execution episode of the trial
+        self.last_actions: List[int] = []
 
     def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
         if int(obs["phase"]) == EXPLORATION:
             self.sign_pixels = max(self.sign_pixels, self.env.sign_pixels())
             self.past_barrier = self.past_barrier or bool(self.env.agent_position[1] > LOWER_ROOMS_Z[0])
-        return self.agent.act(obs, info)
+        elif int(obs["episode_start"]):
+            target = (SIGN_COLOURS[self.env.problem_id], OBJECT_TYPES[int(obs["instruction"][0]) - 1])
+            self.execution_targets.append(EXECUTION_TARGETS.index(target))
+            self.last_actions.append(-1)
+        action = self.agent.act(obs, info)
+        if int(obs["phase"]) != EXPLORATION:
+            self.last_actions[-1] = int(action)
+        return action
+
+    def execution_outcomes(self, returns: Sequence[float]) -> List[int]:
+        """How each of the trial's execution episodes ended, given their returns (a touch gives +-1)."""
+        names = [
+            "right" if r > 0 else "wrong" if r < 0 else "ended" if last == END_EPISODE else "timed out"
+            for r, last in zip(returns, self.last_actions)
+        ]
+        return [EXECUTION_OUTCOMES.index(name) for name in names]
 
 
 def exploration_report(
@@ -559,13 +606,17 @@ def exploration_report(
         raise ValueError(f"env must be a SignNav3D-v0 env, got {type(sign_nav).__name__}")
     min_pixels = check_positive_int("min_pixels", min_pixels)
     recorder = _SignViewRecorder(agent, sign_nav)
-    rows = []
+    rows, targets, outcomes = [], [], []
     for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
         rows.append(
             (recorder.sign_pixels, recorder.past_barrier, result["exploration_length"], np.mean(result["execution_returns"]))
         )
+        targets += recorder.execution_targets
+        outcomes += recorder.execution_outcomes(result["execution_returns"])
     pixels, past, lengths, returns = (np.array(column) for column in zip(*rows))
-    return SignExplorationReport(pixels, past.astype(bool), lengths, returns.astype(float), min_pixels)
+    return SignExplorationReport(
+        pixels, past.astype(bool), lengths, returns.astype(float), min_pixels, np.array(targets), np.array(outcomes)
+    )
 
 
 class _Planner:

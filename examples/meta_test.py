@@ -35,7 +35,9 @@ execution episode whether the recipe was finished, the dish ruined, and how many
 stage, with the held-out recipes' shares one by one (:func:`dream_envs.cook.behaviour_report`).
 SignNav3D-v0: in how many explorations the sign was read (at least 20 pixels of its letters in one
 view) and the agent got past the barrier, with the execution return of the trials that read the
-sign and of those that did not (:func:`dream_envs.sign_nav.exploration_report`).
+sign and of those that did not, and per target object (the sign's colour, the instruction's type)
+how the execution episodes ended: right, wrong object, end action, or timed out
+(:func:`dream_envs.sign_nav.exploration_report`).
 
 ``--gains`` (DREAM only) runs :func:`sb3_dream.dream.exploration_gains` on the same trials (with
 ``--diagnose``, on the trials diagnose already played, not a second time): the

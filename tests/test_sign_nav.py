@@ -15,6 +15,7 @@ from dream_envs.sign_nav import (
     END_EPISODE,
     MOVE_FORWARD,
     SIGN_CENTER,
+    TURN_LEFT,
     OpenGLUnavailableError,
     SignNav3DEnv,
     sign_colour_from_image,
@@ -338,6 +339,46 @@ def test_exploration_report_tells_reading_explorers_from_idle_ones(env):
         sign_nav.exploration_report(gym.make("MetaBandit-v0"), EndExploration(), n_trials=1)
     with pytest.raises(ValueError, match="min_pixels"):
         sign_nav.exploration_report(env, EndExploration(), n_trials=1, min_pixels=0)
+
+
+class TurnInPlace(ScriptedAgent):
+    """Turns left forever: every inner episode runs into the horizon without touching anything."""
+
+    def act(self, obs, info):
+        return TURN_LEFT
+
+
+class TouchRedBall(ScriptedAgent):
+    """Ends exploration at once; in execution, is put next to the red ball and walks into it."""
+
+    def __init__(self, env):
+        self.env = env
+
+    def act(self, obs, info):
+        if int(obs["phase"]) == 0:
+            return END_EPISODE
+        place_before(self.env, "ball", "red")
+        return MOVE_FORWARD
+
+
+def test_exploration_report_tells_how_each_execution_episode_ended(env):
+    # 6 trials pinned to every (problem, instruction): each target once, in EXECUTION_TARGETS' order
+    pins = dict(problem_ids=[0, 0, 0, 1, 1, 1], instructions=[[1], [2], [3], [1], [2], [3]])
+    oracle = sign_nav.exploration_report(env, env.oracle(), n_trials=6, seed=3, **pins)
+    assert list(oracle.execution_targets) == list(range(6))
+    assert list(oracle.outcome_counts()) == list(sign_nav.EXECUTION_TARGETS)
+    assert all(counts == {"right": 1, "wrong": 0, "ended": 0, "timed out": 0} for counts in oracle.outcome_counts().values())
+    assert "execution by target (right/wrong/ended/timed out): blue ball 1/0/0/0, blue key 1/0/0/0" in oracle.summary()
+
+    idle = sign_nav.exploration_report(env, EndExploration(), n_trials=6, seed=3, **pins)
+    assert (idle.execution_outcomes == sign_nav.EXECUTION_OUTCOMES.index("ended")).all()
+    turning = sign_nav.exploration_report(env, TurnInPlace(), n_trials=2, seed=3, **pins)
+    assert (turning.execution_outcomes == sign_nav.EXECUTION_OUTCOMES.index("timed out")).all()
+    assert "blue ball 0/0/0/1, blue key 0/0/0/1" in turning.summary()
+
+    # a wrong touch: the red ball, which is the target only of (red, ball)
+    wrong = sign_nav.exploration_report(env, TouchRedBall(env), n_trials=2, seed=3, **pins)
+    assert "blue ball 0/1/0/0, blue key 0/1/0/0" in wrong.summary()
 
 
 def test_public_info_has_no_problem(env):
