@@ -58,6 +58,12 @@ OBJECT_LAYOUT: Dict[Tuple[str, str], Tuple[float, float]] = {
 # ended: touching the target, touching another object, the end-episode action, or the horizon.
 EXECUTION_TARGETS: Tuple[Tuple[str, str], ...] = tuple((c, k) for c in SIGN_COLOURS for k in OBJECT_TYPES)
 EXECUTION_OUTCOMES = ("right", "wrong", "ended", "timed out")
+
+
+def execution_target(problem_id: int, instruction: Sequence[int]) -> Tuple[str, str]:
+    """The (colour, type) of the object that execution instruction ``instruction`` asks for in problem
+    ``problem_id``: the sign's colour, the instruction's type (``[1]`` ball, ``[2]`` key, ``[3]`` box)."""
+    return SIGN_COLOURS[int(problem_id)], OBJECT_TYPES[int(instruction[0]) - 1]
 OBJECT_HEIGHT = 0.6  # balls and keys are drawn this tall (the authors enlarged the key to 0.6 too)
 BOX_SIZE = 0.8
 
@@ -572,7 +578,7 @@ class _SignViewRecorder(ScriptedAgent):
             self.sign_pixels = max(self.sign_pixels, self.env.sign_pixels())
             self.past_barrier = self.past_barrier or bool(self.env.agent_position[1] > LOWER_ROOMS_Z[0])
         elif int(obs["episode_start"]):
-            target = (SIGN_COLOURS[self.env.problem_id], OBJECT_TYPES[int(obs["instruction"][0]) - 1])
+            target = execution_target(self.env.problem_id, obs["instruction"])
             self.execution_targets.append(EXECUTION_TARGETS.index(target))
             self.last_actions.append(-1)
         action = self.agent.act(obs, info)

@@ -391,6 +391,54 @@ def test_execution_buffer_pickled_before_the_links_rebuilds_them():
     assert (old.next_in_episode >= 0).any()
 
 
+def test_execution_reward_counts_group_the_replay_by_problem_and_instruction():
+    from gymnasium import spaces
+
+    from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer
+
+    state_space = spaces.Box(0, 1, (2,), np.float32)
+    obs_space = spaces.Dict({"obs": state_space, "instruction": spaces.MultiDiscrete([4])})
+    exploration = ExplorationBuffer(2, 3, state_space, n_problem_features=1, device=th.device("cpu"))
+    execution = ExecutionBuffer(20, obs_space, th.device("cpu"))
+    buffer = DreamReplayBuffer(exploration, execution)
+
+    def explore(problem):
+        zeros = np.zeros(4)
+        return exploration.add(np.zeros((4, 2)), np.zeros(3), zeros, zeros, 1, np.array([problem]))
+
+    def execute(slot_generation, instruction, rewards):  # one execution episode, one env
+        for step, reward in enumerate(rewards):
+            execution.add(
+                {
+                    "states": np.zeros((1, 2)), "next_states": np.zeros((1, 2)),
+                    "instructions": np.array([[instruction]]), "actions": np.array([0]), "rewards": np.array([reward]), "dones": np.array([0.0]),
+                    "slots": np.array([slot_generation[0]]), "generations": np.array([slot_generation[1]]),
+                    "steps": np.array([step]),
+                }
+            )  # fmt: skip
+
+    first, second = explore(problem=0), explore(problem=1)
+    execute(first, 1, [0.0, 0.0, 1.0])
+    execute(first, 1, [-1.0])
+    execute(first, 2, [0.0, 0.5])
+    execute(second, 1, [0.0, -1.0])
+    counts = buffer.execution_reward_counts()
+    np.testing.assert_array_equal(counts.problem_features, [[0], [0], [1]])
+    np.testing.assert_array_equal(counts.instructions, [[1], [2], [1]])
+    np.testing.assert_array_equal(counts.transitions, [4, 2, 2])
+    np.testing.assert_array_equal(counts.episodes, [2, 1, 1])
+    np.testing.assert_array_equal(counts.positive, [1, 1, 0])
+    np.testing.assert_array_equal(counts.negative, [1, 0, 1])
+    np.testing.assert_allclose(counts.reward_sum, [0.0, 0.5, -1.0])
+    assert counts.unlinked == 0
+
+    explore(problem=1)  # overwrites the first trajectory (capacity 2): its 6 transitions lose their problem
+    counts = buffer.execution_reward_counts()
+    assert counts.unlinked == 6
+    np.testing.assert_array_equal(counts.problem_features, [[1]])
+    np.testing.assert_array_equal(counts.transitions, [2])
+
+
 def test_episode_batches_score_each_transition_as_the_paper_batch_does():
     # A batch of whole episodes (one trajectory per episode) gives the execution DDQN losses of the
     # same transitions sampled one by one (each with its own copy of its trajectory): the sharing

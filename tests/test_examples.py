@@ -170,6 +170,30 @@ def test_meta_test_plays_the_sign_oracle_on_the_env_it_reads(tmp_path):
     assert "optimal (scripted): execution return 1.000 ± 0.000 over 2 trials" in out
 
 
+def test_replay_rewards_counts_a_saved_buffer_per_problem_and_instruction(tmp_path):
+    from sb3_dream import DREAM
+
+    model = DREAM("MetaBus-v0", seed=0, exploration_learning_starts=5, execution_learning_starts=5)
+    model.learn(300)
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    counts = model.replay_buffer.execution_reward_counts()
+    out = run_example("replay_rewards.py", "buffer.pkl", cwd=tmp_path)
+    lines = out.splitlines()
+    assert lines[0] == f"buffer.pkl: {len(model.replay_buffer.execution)} execution transitions"
+    assert len(lines) == 1 + len(counts.transitions) + (counts.unlinked > 0)
+    p, i, n = counts.problem_features[0], counts.instructions[0], counts.transitions[0]
+    assert f"problem {tuple(p.tolist())} instruction {tuple(i.tolist())}: {n} transitions" in lines[1]
+    assert sum(counts.transitions) + counts.unlinked == len(model.replay_buffer.execution)
+
+    from stable_baselines3.common.save_util import save_to_pkl
+
+    save_to_pkl(tmp_path / "other.pkl", {"not": "a buffer"})
+    result = subprocess.run(
+        [sys.executable, str(EXAMPLES / "replay_rewards.py"), "other.pkl"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert result.returncode != 0 and "other.pkl holds a dict, not a DREAM replay buffer" in result.stderr
+
+
 def test_custom_trial_env_script(tmp_path):
     out = run_example("custom_trial_env.py", "--steps", "120", "--n-envs", "2", "--eval-trials", "10", cwd=tmp_path)
     assert "oracle: execution return 1.000" in out and "DREAM: execution return" in out

@@ -15,6 +15,7 @@ Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) sav
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Dict, NamedTuple, Optional
 
 import numpy as np
@@ -236,11 +237,52 @@ class ExecutionBuffer:
         )
 
 
+@dataclass
+class ExecutionRewardCounts:
+    """What B_exe holds per (problem, instruction): one row per pair present in it.
+
+    Execution learns only from the rewards its replay holds; a pair with no positive reward in
+    B_exe is one the execution Q-network cannot learn to reach (sparse-reward envs: SignNav3D).
+    """
+
+    problem_features: np.ndarray  # [k, P] the problem's features (as B_exp stores them)
+    instructions: np.ndarray  # [k, I]
+    transitions: np.ndarray  # [k]
+    episodes: np.ndarray  # [k] execution episodes (transitions at step 0 of theirs)
+    positive: np.ndarray  # [k] transitions with reward > 0
+    negative: np.ndarray  # [k] transitions with reward < 0
+    reward_sum: np.ndarray  # [k]
+    unlinked: int  # transitions whose exploration trajectory was overwritten (problem unknown, never sampled)
+
+
 class DreamReplayBuffer:
     """Both buffers together, so SB3's ``save_replay_buffer``/``load_replay_buffer`` carry them."""
 
     def __init__(self, exploration: ExplorationBuffer, execution: ExecutionBuffer) -> None:
         self.exploration, self.execution = exploration, execution
+
+    def execution_reward_counts(self) -> ExecutionRewardCounts:
+        """Count B_exe's transitions and their rewards per (problem, instruction) of their trial."""
+        exe, n = self.execution, len(self.execution)
+        slots = exe.slots[:n]
+        linked = self.exploration.generation[slots] == exe.generations[:n]
+        problems = self.exploration.problem_features[slots[linked]]
+        instructions, rewards = exe.instructions[:n][linked], exe.rewards[:n][linked]
+        starts = exe.steps[:n][linked] == 0
+        pairs, which = np.unique(np.concatenate([problems, instructions], axis=1), axis=0, return_inverse=True)
+        which = which.reshape(-1)  # numpy 2.0.x gave it the input's dimensions
+        count = lambda weights=None: np.bincount(which, weights, minlength=len(pairs))  # noqa: E731
+        n_features = problems.shape[1]
+        return ExecutionRewardCounts(
+            problem_features=pairs[:, :n_features],
+            instructions=pairs[:, n_features:],
+            transitions=count(),
+            episodes=count(starts).astype(np.int64),
+            positive=count(rewards > 0).astype(np.int64),
+            negative=count(rewards < 0).astype(np.int64),
+            reward_sum=count(rewards),
+            unlinked=int(n - linked.sum()),
+        )
 
     @property
     def device(self) -> th.device:
