@@ -54,6 +54,9 @@ OBJECT_LAYOUT: Dict[Tuple[str, str], Tuple[float, float]] = {
     ("key", "red"): (1.0, 5.0),
     ("ball", "blue"): (1.0, 9.0),
 }
+OBJECT_HEIGHT = 0.6  # balls and keys are drawn this tall (the authors enlarged the key to 0.6 too)
+BOX_SIZE = 0.8
+
 # An execution episode's target: the object of the sign's colour and the instruction's type. How it
 # ended: touching the target, touching another object, the end-episode action, or the horizon.
 EXECUTION_TARGETS: Tuple[Tuple[str, str], ...] = tuple((c, k) for c in SIGN_COLOURS for k in OBJECT_TYPES)
@@ -64,8 +67,7 @@ def execution_target(problem_id: int, instruction: Sequence[int]) -> Tuple[str, 
     """The (colour, type) of the object that execution instruction ``instruction`` asks for in problem
     ``problem_id``: the sign's colour, the instruction's type (``[1]`` ball, ``[2]`` key, ``[3]`` box)."""
     return SIGN_COLOURS[int(problem_id)], OBJECT_TYPES[int(instruction[0]) - 1]
-OBJECT_HEIGHT = 0.6  # balls and keys are drawn this tall (the authors enlarged the key to 0.6 too)
-BOX_SIZE = 0.8
+
 
 # The sign: a white board on the right room's east wall, facing west, at eye height.
 SIGN_CENTER = (ROOM_SIZE, 1.5, (LOWER_ROOMS_Z[0] + LOWER_ROOMS_Z[1]) / 2)  # x, y, z
@@ -574,15 +576,15 @@ class _SignViewRecorder(ScriptedAgent):
         self.last_actions: List[int] = []
 
     def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+        action = self.agent.act(obs, info)
         if int(obs["phase"]) == EXPLORATION:
             self.sign_pixels = max(self.sign_pixels, self.env.sign_pixels())
             self.past_barrier = self.past_barrier or bool(self.env.agent_position[1] > LOWER_ROOMS_Z[0])
         elif int(obs["episode_start"]):
             target = execution_target(self.env.problem_id, obs["instruction"])
             self.execution_targets.append(EXECUTION_TARGETS.index(target))
-            self.last_actions.append(-1)
-        action = self.agent.act(obs, info)
-        if int(obs["phase"]) != EXPLORATION:
+            self.last_actions.append(int(action))
+        else:
             self.last_actions[-1] = int(action)
         return action
 

@@ -264,9 +264,8 @@ class DreamReplayBuffer:
     def execution_reward_counts(self) -> ExecutionRewardCounts:
         """Count B_exe's transitions and their rewards per (problem, instruction) of their trial."""
         exe, n = self.execution, len(self.execution)
-        slots = exe.slots[:n]
-        linked = self.exploration.generation[slots] == exe.generations[:n]
-        problems = self.exploration.problem_features[slots[linked]]
+        linked = ~exe._stale(np.arange(n), self.exploration)
+        problems = self.exploration.problem_features[exe.slots[:n][linked]]
         instructions, rewards = exe.instructions[:n][linked], exe.rewards[:n][linked]
         starts = exe.steps[:n][linked] == 0
         pairs, which = np.unique(np.concatenate([problems, instructions], axis=1), axis=0, return_inverse=True)
