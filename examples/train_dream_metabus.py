@@ -9,7 +9,7 @@ episode, then execute one instruction with z decoded from that exploration. The 
 about the buses walks there for 0.3, and a random one gets about -2.
 
 ``--preset fast`` (the default here; ``paper`` for the paper's schedules) starts learning after
-100 trials and decays epsilon over 30K steps of each policy (:mod:`sb3_dream.dream.presets`); the
+100 trials and decays epsilon over 30K steps of each policy (:mod:`sb3_dream.presets`); the
 map variant (24 problems) learns sooner than the default distracting-bus one (576 problems).
 Next: ``examples/watch_dream.py`` makes a video of the saved model, ``examples/meta_test.py``
 scores it.
@@ -24,7 +24,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import dream_envs  # noqa: F401  (registers MetaBus-v0 and the other trial envs)
 from sb3_dream import DREAM, MetaEvalCallback, evaluate_meta
-from sb3_dream.dream.presets import PRESETS
+from sb3_dream.presets import PRESETS
 from sb3_dream.experiments import parse_kwargs
 
 

@@ -66,7 +66,7 @@ them without training anything.
 **Algorithms:** ``dream`` (:class:`~sb3_dream.DREAM`), ``dream_no_bottleneck``
 (``DREAM(bottleneck=False)``, the paper's ablation) and ``rl2dqn``
 (:class:`~sb3_dream.rl2dqn.RL2DQN`, the paper's RL² baseline). ``--preset paper`` keeps every
-default (the paper's); ``--preset fast`` applies :data:`sb3_dream.dream.presets.PRESETS` ``["fast"]``
+default (the paper's); ``--preset fast`` applies :data:`sb3_dream.presets.PRESETS` ``["fast"]``
 to DREAM and :data:`RL2DQN_PRESETS` ``["fast"]`` (the matching schedule changes) to RL2DQN.
 
 **Envs** are registered IDs with optional constructor arguments after colons, e.g.
@@ -104,20 +104,13 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from dream_envs import all_splits, env_splits
-from dream_envs.core import check_choice
+from dream_envs.checks import check_choice
 from sb3_dream.evaluation import BEST_TIES, CURVE_COLUMNS, format_mean_ci
+from sb3_dream.presets import RL2DQN_PRESETS
 
 DREAM_ALGOS = ("dream", "dream_no_bottleneck")  # the runs that train sb3_dream.DREAM
 ALGOS = (*DREAM_ALGOS, "rl2dqn")
 PRESET_NAMES = ("paper", "fast")
-
-RL2DQN_PRESETS: Dict[str, Dict[str, Any]] = {
-    "paper": {},
-    # The schedule changes of DREAM's "fast" preset, for RL²: learning starts after ~100 trials of
-    # the grid worlds (4000 steps) instead of 16000 steps, epsilon decays over 60K steps (DREAM's
-    # 2 x 30K) instead of 500K, and targets sync every 1000 updates instead of 5000.
-    "fast": {"learning_starts": 4000, "exploration_steps": 60_000, "target_update_interval": 1000},
-}
 
 
 def _parse_value(text: str) -> Any:
@@ -306,7 +299,7 @@ def algorithm_kwargs(algo: str, config: RunConfig) -> Dict[str, Any]:
     """The constructor arguments of ``algo`` that ``config`` sets: its preset, then its overrides."""
     if algo == "rl2dqn":
         return {**RL2DQN_PRESETS[config.preset], **dict(config.rl2dqn_kwargs)}
-    from sb3_dream.dream.presets import PRESETS
+    from sb3_dream.presets import PRESETS
 
     return {**PRESETS[config.preset], **dict(config.dream_kwargs), "bottleneck": algo == "dream"}
 

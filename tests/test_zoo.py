@@ -14,8 +14,7 @@ optuna = pytest.importorskip("optuna")
 
 from sb3_dream.dream import DREAM  # noqa: E402
 from sb3_dream.rl2dqn import RL2DQN  # noqa: E402
-from sb3_dream.dream.presets import PRESETS  # noqa: E402
-from sb3_dream.experiments import RL2DQN_PRESETS  # noqa: E402
+from sb3_dream.presets import PRESETS, RL2DQN_PRESETS  # noqa: E402
 from sb3_dream.zoo import SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
 from sb3_dream.zoo.cli import enjoy_args, main, train_args  # noqa: E402
 from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS  # noqa: E402

@@ -6,7 +6,7 @@ after the constructor arguments, so the converters (rl-zoo3's ``HYPERPARAMS_CONV
 ``--storage ... --study-name ... --trial-id``) only copy them.
 
 The ranges centre on the paper's values (Appendix B.4) and reach the budgets where the grid worlds
-learn in an hour or less on a CPU (see :mod:`sb3_dream.dream.presets`): learning starts, epsilon
+learn in an hour or less on a CPU (see :mod:`sb3_dream.presets`): learning starts, epsilon
 decay and target syncs are the values that matter most there. Networks, losses and the update
 ratio (one update per 4 env steps) are not searched.
 """

@@ -1,0 +1,43 @@
+"""Named hyperparameter sets, the one source of presets: ``DREAM(env, **PRESETS["fast"])``.
+
+:data:`PRESETS` holds DREAM's, :data:`RL2DQN_PRESETS` RL2DQN's, under the same names; the
+experiment runner (``--preset``) and the rl-zoo3 hyperparameter files read them from here (a test
+checks the zoo's YAML files agree). Each preset is a dict of constructor keyword arguments.
+
+``paper`` is the default (Appendix B.4 and Table 1; learning starts from the authors' code).
+``fast`` changes only *when and how long* things happen, to learn the grid worlds in minutes on a
+laptop CPU; every network, loss and the update ratio (one update of each part per 4 env steps)
+stay the paper's:
+
+* ``exploration_learning_starts`` 8000 -> 100 trials and ``execution_learning_starts`` 500 -> 100:
+  the paper waits 8000 trials before the exploration policy learns at all;
+* ``eps_decay_steps`` 250K -> 30K per policy: epsilon-greedy reaches 0.01 after 30K steps of each;
+* ``target_update_interval`` 5000 -> 1000 updates: targets follow faster on small problems.
+
+RL2DQN's ``fast`` makes the same schedule changes in its own terms: learning starts after about
+100 trials of the grid worlds (4000 env steps instead of 16000), epsilon decays over 60K steps
+(DREAM's 2 x 30K) instead of 500K, and targets sync every 1000 updates instead of 5000.
+
+Compared side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results.md).
+"""
+
+from typing import Any, Dict
+
+Preset = Dict[str, Any]
+
+PRESETS: Dict[str, Preset] = {
+    "paper": {},
+    "fast": {
+        "exploration_learning_starts": 100,
+        "execution_learning_starts": 100,
+        "eps_decay_steps": 30_000,
+        "target_update_interval": 1000,
+    },
+}
+
+RL2DQN_PRESETS: Dict[str, Preset] = {
+    "paper": {},
+    "fast": {"learning_starts": 4000, "exploration_steps": 60_000, "target_update_interval": 1000},
+}
+
+__all__ = ["PRESETS", "Preset", "RL2DQN_PRESETS"]
