@@ -2,7 +2,7 @@
 
 Importing this package registers ``MetaBus-v0``, ``MetaCook-v0``, ``SignNav3D-v0`` and
 ``MetaBandit-v0``. One Gymnasium episode is one trial: an exploration episode, then
-``n_exec_episodes`` execution episodes (see :mod:`dream_envs.core`).
+``n_exec_episodes`` execution episodes (see :mod:`dream_envs.trial_env`).
 """
 
 import functools
@@ -12,20 +12,9 @@ from typing import Tuple
 import gymnasium as gym
 from gymnasium.envs.registration import register, registry
 
-from dream_envs.core import (
-    EXECUTION,
-    EXPLORATION,
-    SPLITS,
-    BatchTrialAgent,
-    RandomAgent,
-    ScriptedAgent,
-    SingleTrialAgent,
-    TrialEnv,
-    play_trial,
-    play_trials,
-    play_trials_batched,
-    public_info,
-)
+from dream_envs.agents import BatchTrialAgent, RandomAgent, ScriptedAgent, SingleTrialAgent
+from dream_envs.play import play_trial, play_trials, play_trials_batched
+from dream_envs.trial_env import EXECUTION, EXPLORATION, SPLITS, TrialEnv, public_info
 
 ENV_IDS = {
     "MetaBus-v0": "dream_envs.bus:MetaBusEnv",

@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_positive_int
+from dream_envs.agents import ScriptedAgent
+from dream_envs.checks import check_positive_int
+from dream_envs.trial_env import EXPLORATION, TrialEnv
 from dream_envs.rendering import COLORS, GridCanvas
 
 

@@ -9,7 +9,10 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_choice, play_trials
+from dream_envs.agents import ScriptedAgent
+from dream_envs.checks import check_choice
+from dream_envs.play import play_trials
+from dream_envs.trial_env import EXPLORATION, TrialEnv
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
 
 Cell = Tuple[int, int]
@@ -404,7 +407,7 @@ def exploration_report(
     problem_ids: Optional[Sequence[int]] = None,
     instructions: Optional[Sequence[Any]] = None,
 ) -> BusExplorationReport:
-    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.agents.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration.
 
     The problem ID is read from the env's ``info`` after each trial, to resolve which routes the

@@ -21,15 +21,10 @@ from gymnasium import spaces
 from dream_envs.bus import ACTION_NAMES as GRID_ACTION_NAMES
 from dream_envs.bus import DOWN, DROP, END_EPISODE, FRIDGE, LEFT, MOVES, N_ACTIONS, NO_OBJECT, PICKUP, POT, RIGHT, UP
 from dream_envs.bus import NOOP, RIDE as RIDE_BUS  # noqa: F401 (unused here: this module's names for all 9 actions)
-from dream_envs.core import (
-    EXPLORATION,
-    SPLITS,
-    ScriptedAgent,
-    TrialEnv,
-    check_choice,
-    check_positive_int,
-    play_trials,
-)
+from dream_envs.agents import ScriptedAgent
+from dream_envs.checks import check_choice, check_positive_int
+from dream_envs.play import play_trials
+from dream_envs.trial_env import EXPLORATION, SPLITS, TrialEnv
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
 
 GRID_SIZE = 3
@@ -110,7 +105,7 @@ def cook_transition(
     """The inner MDP: ``(x, y, inventory, pot1, pot2), action -> (next state, reward, done)``.
 
     Pure, so that tests can search the MDP exhaustively. Not for the end-episode action (handled by
-    :class:`~dream_envs.core.TrialEnv`). With ``instruction=None`` (reward-free) the reward is 0 and
+    :class:`~dream_envs.trial_env.TrialEnv`). With ``instruction=None`` (reward-free) the reward is 0 and
     ``done`` is False. ``undo_reward`` is the reward of a step that sets the recipe back.
     """
     x, y, inventory, pot1, pot2 = state
@@ -309,7 +304,7 @@ class MetaCookEnv(TrialEnv):
     :param split: "train", "test", "all", "test_problems" or "test_instructions" (see above).
     :param n_exec_episodes: execution episodes per trial.
     :param horizon: inner-episode horizon (default 20, the paper's).
-    :param reward_free_exploration: see :class:`~dream_envs.core.TrialEnv`.
+    :param reward_free_exploration: see :class:`~dream_envs.trial_env.TrialEnv`.
     :param undo_reward: the reward of a step that sets the recipe back (default -0.35, see above).
     :param render_mode: ``None`` or ``"rgb_array"``.
     """
@@ -677,7 +672,7 @@ def behaviour_report(
     problem_ids: Optional[Sequence[int]] = None,
     instructions: Optional[Sequence[Any]] = None,
 ) -> CookReport:
-    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.agents.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report its exploration and execution.
 
     The problem ID is read from the env's ``info`` after each trial, to replay the execution

@@ -25,7 +25,10 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.core import EXPLORATION, ScriptedAgent, TrialEnv, check_positive_int, play_trials
+from dream_envs.agents import ScriptedAgent
+from dream_envs.checks import check_positive_int
+from dream_envs.play import play_trials
+from dream_envs.trial_env import EXPLORATION, TrialEnv
 
 # ---------------------------------------------------------------------------------------- geometry
 # The authors' layout (miniworld's ``Sign(size=10)``): a 10 x 6.5 top room where the agent starts,
@@ -311,7 +314,7 @@ class SignNav3DEnv(TrialEnv):
     :param split: "train", "test" or "all" (the same two problems).
     :param n_exec_episodes: execution episodes per trial.
     :param horizon: inner-episode horizon (steps).
-    :param reward_free_exploration: see :class:`~dream_envs.core.TrialEnv`.
+    :param reward_free_exploration: see :class:`~dream_envs.trial_env.TrialEnv`.
     :param render_mode: ``None`` or ``"rgb_array"``.
     :raises OpenGLUnavailableError: (a ``RuntimeError``) where OpenGL cannot be initialised.
     """
@@ -606,9 +609,9 @@ def exploration_report(
     instructions: Optional[Sequence[Any]] = None,
     min_pixels: int = READ_MIN_PIXELS,
 ) -> SignExplorationReport:
-    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.core.ScriptedAgent`; for a model
+    """Play ``n_trials`` trials of ``agent`` (a :class:`~dream_envs.agents.ScriptedAgent`; for a model
     use ``sb3_dream.evaluation.as_trial_agent(model)``) and report what its explorations saw.
-    ``problem_ids`` and ``instructions`` pin trials as in :func:`~dream_envs.core.play_trials`."""
+    ``problem_ids`` and ``instructions`` pin trials as in :func:`~dream_envs.play.play_trials`."""
     sign_nav = env.unwrapped
     if not isinstance(sign_nav, SignNav3DEnv):
         raise ValueError(f"env must be a SignNav3D-v0 env, got {type(sign_nav).__name__}")

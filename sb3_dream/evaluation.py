@@ -20,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import dream_envs
 from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent, play_trials, play_trials_batched
-from dream_envs.core import check_choice, check_positive_int
+from dream_envs.checks import check_choice, check_positive_int
 
 
 class PolicyBatchAgent(BatchTrialAgent):

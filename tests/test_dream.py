@@ -840,7 +840,7 @@ def test_exhaustive_diagnose_plays_and_weights_the_pairs_evaluate_meta_does(bus_
 
 
 def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, monkeypatch):
-    from dream_envs.core import play_trials
+    from dream_envs import play_trials
     from sb3_dream.dream import exploration_gains
 
     ids = [3, 40, 3, 100, 7, 40]
@@ -933,7 +933,7 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     # With the env's oracle as the explorer: the env sees the oracle's exploration actions, the
     # decoder reads that trajectory (its z is g of it), and execution is the model's.
     from dream_envs import make_oracle
-    from dream_envs.core import play_trials
+    from dream_envs import play_trials
 
     env = gym.make("MetaBus-v0", split="test")
     guided = PrivilegedAgent(bus_model, ids, "g", explorer=make_oracle(env))

@@ -163,7 +163,7 @@ def test_env_splits_are_read_from_the_class_without_making_the_env():
 
 
 def test_check_choice_names_the_argument_and_keeps_booleans_apart():
-    from dream_envs.core import check_choice
+    from dream_envs.checks import check_choice
 
     assert check_choice("mode", "auto", (True, False, "auto")) == "auto"
     assert check_choice("mode", False, (True, False, "auto")) is False

@@ -15,7 +15,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.monitor import Monitor
 
 import dream_envs
-from dream_envs.core import EXPLORATION, TrialEnv
+from dream_envs import EXPLORATION, TrialEnv
 from sb3_dream.common.recurrent import (
     LinearEpsilonSchedule,
     double_dqn_targets,

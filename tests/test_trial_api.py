@@ -1,4 +1,4 @@
-"""The trial contract of dream_envs.core, checked on MetaBandit-v0 and on a tiny env defined here."""
+"""The trial contract of dream_envs.trial_env, checked on MetaBandit-v0 and on a tiny env defined here."""
 
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from gymnasium import spaces
 from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from torch import nn
 
-from dream_envs.core import check_positive_int
+from dream_envs.checks import check_positive_int
 
 
 def _flatten_batch(x: th.Tensor, event_shape: Sequence[int]) -> tuple[th.Tensor, tuple[int, ...]]:
@@ -260,7 +260,7 @@ def embed_dict(embedders: nn.ModuleDict, obs: Dict[str, th.Tensor]) -> th.Tensor
     return th.cat([embedders[k](obs[k]) for k in embedders.keys()], dim=-1)
 
 
-# Keys of the trial envs' Dict observation (see dream_envs.core) that the recurrent Q-networks embed.
+# Keys of the trial envs' Dict observation (see dream_envs.trial_env) that the recurrent Q-networks embed.
 TRIAL_KEYS = ("obs", "instruction", "episode_start", "prev_action", "prev_reward", "final_obs")
 # Keys that may be present but are not embedded: the phase is implied by the episode-start flags.
 IGNORED_KEYS = ("phase",)

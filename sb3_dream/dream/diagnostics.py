@@ -48,8 +48,8 @@ import gymnasium as gym
 import numpy as np
 import torch as th
 
-from dream_envs import make_oracle
-from dream_envs.core import EXPLORATION, ScriptedAgent, SingleTrialAgent, check_choice, check_positive_int
+from dream_envs import EXPLORATION, ScriptedAgent, SingleTrialAgent, make_oracle
+from dream_envs.checks import check_choice, check_positive_int
 from sb3_dream.dream.dream import DREAM, DreamBatchTrialAgent
 from sb3_dream.evaluation import _make_envs, evaluate_meta, exhaustive_cases
 

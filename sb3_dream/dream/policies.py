@@ -23,7 +23,7 @@ from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from dream_envs.core import check_non_negative, check_positive_int
+from dream_envs.checks import check_non_negative, check_positive_int
 from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder, relu_mlp
 from sb3_dream.common.recurrent import DuelingHead
 

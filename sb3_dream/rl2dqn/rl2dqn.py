@@ -22,14 +22,8 @@ from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve in gym.make)
-from dream_envs.core import (
-    BatchTrialAgent,
-    ScriptedAgent,
-    SingleTrialAgent,
-    check_choice,
-    check_non_negative,
-    check_positive_int,
-)
+from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent
+from dream_envs.checks import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
@@ -75,7 +69,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
     (64) -> linear 64 + ReLU -> LSTM 64 -> dueling head (V + A - mean A), trained with double-DQN
     targets on sequences of up to ``sequence_length`` steps from a replay of whole trials.
 
-    **Environment.** One gym episode is one trial (see :mod:`dream_envs.core`): the observation is a
+    **Environment.** One gym episode is one trial (see :mod:`dream_envs.trial_env`): the observation is a
     Dict with at least ``obs``; ``instruction``, ``episode_start``, ``prev_action``, ``prev_reward``
     are embedded when present (``phase`` is ignored: the episode-start flags imply it). The
     LSTM state is carried across the inner episodes of a trial and reset only when a trial (gym

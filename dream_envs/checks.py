@@ -1,0 +1,33 @@
+"""Argument checks shared by the envs and the algorithms: each raises a ``ValueError`` that names the
+argument and the values it accepts."""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+
+def check_choice(name: str, value: Any, choices: Sequence[Any]) -> Any:
+    """Raise a ``ValueError`` naming ``name`` and the accepted values unless ``value`` is one of them.
+
+    Booleans only match booleans: ``1 == True`` in Python, but 1 is not an accepted ``True``.
+    """
+    if not any(value == c and isinstance(value, bool) == isinstance(c, bool) for c in choices):
+        raise ValueError(f"{name}={value!r} is not valid; accepted values: {', '.join(map(repr, choices))}")
+    return value
+
+
+def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
+    """Raise a ``ValueError`` naming ``name`` unless ``value`` is an integer >= ``minimum`` (not a bool)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_non_negative(name: str, value: Any) -> float:
+    """Raise a ``ValueError`` naming ``name`` unless ``value`` is a finite real number >= 0 (not a bool)."""
+    is_real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not (is_real and np.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+    return float(value)
