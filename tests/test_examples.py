@@ -1,4 +1,5 @@
-"""The example scripts run end to end on tiny budgets, and the custom env example is a correct trial env."""
+"""The example scripts (and the research probe) run end to end on tiny budgets, and the custom env example is a correct
+trial env."""
 
 from __future__ import annotations
 
@@ -17,22 +18,24 @@ import pytest
 from dream_envs import play_trial
 from sb3_dream.evaluation import evaluate_meta
 
-EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+RESEARCH = ROOT / "research"  # research probes: scripts beside the package, not usage examples
 TINY_DREAM = [
     "exploration_learning_starts=5", "execution_learning_starts=5", "buffer_size=200", "execution_buffer_size=1000"
 ]  # fmt: skip
 
 
-def load_example(name: str):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+def load_example(name: str, folder: pathlib.Path = EXAMPLES):
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
 
 
-def run_example(name: str, *args: str, cwd: pathlib.Path) -> str:
+def run_example(name: str, *args: str, cwd: pathlib.Path, folder: pathlib.Path = EXAMPLES) -> str:
     result = subprocess.run(
-        [sys.executable, str(EXAMPLES / name), *args], cwd=cwd, capture_output=True, text=True, timeout=180
+        [sys.executable, str(folder / name), *args], cwd=cwd, capture_output=True, text=True, timeout=180
     )
     assert result.returncode == 0, f"{name} failed:\n{result.stdout}\n{result.stderr}"
     return result.stdout
@@ -222,7 +225,7 @@ def test_custom_trial_env_is_a_working_imrl_problem():
 
 
 def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_table(tmp_path):
-    probe = load_example("cook_composition_probe")
+    probe = load_example("cook_composition_probe", RESEARCH)
     from dream_envs import cook
 
     rng = np.random.default_rng(0)
@@ -243,7 +246,7 @@ def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_ta
     for flags in ([], ["--targets", "bootstrapped", "--actions", "one", "--target-update", "2"]):
         run_example(
             "cook_composition_probe.py", "--variants", "wide_parts", "--seeds", "0", "--steps", "3",
-            "--out", "probe.csv", *flags, cwd=tmp_path,
+            "--out", "probe.csv", *flags, cwd=tmp_path, folder=RESEARCH,
         )  # fmt: skip
     with open(tmp_path / "probe.csv") as f:
         rows = list(csv.DictReader(f))  # the second command's rows appended to the first's
@@ -255,14 +258,14 @@ def test_cook_composition_probe_targets_are_optimal_and_the_script_writes_its_ta
     assert all(0 <= float(row["cooked"]) <= 1 for row in rows)
     for flag, value in (("--target-update", "0"), ("--steps", "-1"), ("--lr", "0")):  # refused before any work
         result = subprocess.run(
-            [sys.executable, str(EXAMPLES / "cook_composition_probe.py"), flag, value],
+            [sys.executable, str(RESEARCH / "cook_composition_probe.py"), flag, value],
             cwd=tmp_path, capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert result.returncode == 2 and f"{flag} must be positive, got {value}" in result.stderr
 
 
 def test_cook_composition_probe_fusions_change_one_place_of_the_wide_parts_network():
-    probe = load_example("cook_composition_probe")
+    probe = load_example("cook_composition_probe", RESEARCH)
     import gymnasium as gym
     import torch as th
 
