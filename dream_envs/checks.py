@@ -31,3 +31,19 @@ def check_non_negative(name: str, value: Any) -> float:
     if not (is_real and np.isfinite(value) and value >= 0):
         raise ValueError(f"{name} must be a number >= 0, got {value!r}")
     return float(value)
+
+
+def check_action(action: Any, n_actions: int) -> int:
+    """Return ``action`` as an ``int`` or raise a ``ValueError`` naming it, unless it is an integer in
+    ``0 .. n_actions - 1``: a Python or numpy integer, or an integer array of size 1 (as a vectorised
+    env hands out). Booleans, floats and strings are refused rather than rounded or cast."""
+    value = action
+    if isinstance(value, np.ndarray) and value.size == 1:
+        value = value.reshape(())[()]
+    is_integer = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if not (is_integer and 0 <= value < n_actions):
+        raise ValueError(
+            f"action={action!r} is not valid; accepted values: integers 0 .. {n_actions - 1} "
+            "(a Python or numpy integer, or an integer array of size 1)"
+        )
+    return int(value)

@@ -54,7 +54,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.checks import check_choice, check_positive_int
+from dream_envs.checks import check_action, check_choice, check_positive_int
 
 # Every family has these splits; a family may add its own (``TrialEnv.splits``, e.g. MetaCook's).
 SPLITS = ("train", "test", "all")
@@ -286,14 +286,7 @@ class TrialEnv(gym.Env, ABC):
     def step(self, action: Any) -> tuple[Dict[str, Any], SupportsFloat, bool, bool, Dict[str, Any]]:
         if self._needs_reset:
             raise RuntimeError("step() called before reset() or after the trial terminated; call reset() first")
-        if not self.action_space.contains(action):
-            try:
-                action = int(np.asarray(action).item())
-            except (TypeError, ValueError):
-                raise ValueError(f"action={action!r} is not valid; accepted values: integers 0 .. {self.n_actions - 1}")
-            if not 0 <= action < self.n_actions:
-                raise ValueError(f"action={action!r} is not valid; accepted values: integers 0 .. {self.n_actions - 1}")
-        action = int(action)
+        action = check_action(action, self.n_actions)
 
         steps_remaining = self.horizon - self._t
         if action == self.end_episode_action:

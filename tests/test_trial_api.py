@@ -189,12 +189,22 @@ def test_bad_reset_options(options, match):
         CueEnv().reset(options=options)
 
 
-def test_bad_action():
+@pytest.mark.parametrize(
+    "action", [5, -1, 1.5, True, "1", np.float32(1), np.bool_(True), np.array([1.0]), np.array([0, 1]), None]
+)
+def test_bad_action_is_refused_with_a_clear_error(action):
     env = CueEnv()
     env.reset(seed=0)
-    with pytest.raises(ValueError, match="action"):
-        env.step(5)
-    env.step(np.int64(1))  # numpy integers are fine
+    with pytest.raises(ValueError, match=r"action=.* accepted values: integers 0 \.\. 2"):
+        env.step(action)
+
+
+@pytest.mark.parametrize("action", [1, np.int64(1), np.int32(1), np.array([1]), np.array(1)])
+def test_integer_actions_are_accepted(action):
+    env = CueEnv()
+    env.reset(seed=0)
+    obs, *_ = env.step(action)
+    assert obs["prev_action"] == 2  # action 1, shifted by one
 
 
 def test_seeding_reproducible():
