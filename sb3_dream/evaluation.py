@@ -240,7 +240,7 @@ def _make_env(env: Union[str, gym.Env], split: str, n_exec_episodes: int, env_kw
 EnvArgument = Union[str, gym.Env, Sequence[gym.Env]]
 
 
-def _make_envs(
+def make_envs(
     env: EnvArgument, split: str, n_exec_episodes: int, env_kwargs: Optional[dict], n_envs: int
 ) -> Tuple[List[gym.Env], List[gym.Env]]:
     """The trial envs to play in and those of them made here (the caller closes them): an ID is
@@ -297,7 +297,7 @@ def evaluate_meta(
         raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
     batch_agent = as_batch_trial_agent(agent, deterministic) if n_envs > 1 else None
     side_by_side = (n_envs if exhaustive else min(n_envs, n_trials)) if batch_agent is not None else 1
-    envs, made = _make_envs(env, split, n_exec_episodes, env_kwargs, side_by_side)
+    envs, made = make_envs(env, split, n_exec_episodes, env_kwargs, side_by_side)
     envs = envs[:side_by_side]
     instructions, probabilities = None, None
     if exhaustive:
@@ -383,7 +383,7 @@ class MetaEvalCallback(BaseCallback):
         n_envs = check_positive_int("n_envs", n_envs)
         # made once: the trials of every evaluation are played side by side in these copies
         n_side = n_envs if exhaustive else min(n_envs, self.n_trials)
-        self.eval_envs, _ = _make_envs(eval_env, split, n_exec_episodes, env_kwargs, n_side)  # they check ``split``
+        self.eval_envs, _ = make_envs(eval_env, split, n_exec_episodes, env_kwargs, n_side)  # they check ``split``
         self.exhaustive = bool(exhaustive)
         if self.exhaustive:
             exhaustive_cases(self.eval_envs[0], split, self.n_trials)  # fails now, not at the first evaluation

@@ -1,28 +1,91 @@
-"""The learn loop shared by the trial algorithms (RL2DQN, DREAM)."""
+"""The learn loop shared by the trial algorithms (RL2DQN, DREAM): SB3's, with the paper's update budget."""
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import Any, ClassVar, Dict, Tuple, TypeVar, Union
 
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback, RolloutReturn
+from stable_baselines3.common.type_aliases import MaybeCallback, TrainFreq, TrainFrequencyUnit
+
+from dream_envs.checks import check_positive_int
 
 SelfTrialOffPolicyAlgorithm = TypeVar("SelfTrialOffPolicyAlgorithm", bound="TrialOffPolicyAlgorithm")
 
 
-class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
-    """SB3's off-policy learn loop (collect, then update), with the number of updates after each
-    rollout left to the algorithm (:meth:`_updates_due`).
+def env_steps_per_update(train_freq: Union[int, Tuple[int, str]]) -> int:
+    """``train_freq`` as env steps: an int, or SB3's ``(n, "step")`` form (episodes do not apply:
+    one episode is a whole trial, and the paper counts updates per env step)."""
+    if isinstance(train_freq, tuple):
+        if len(train_freq) != 2 or train_freq[1] != "step":
+            raise ValueError(f"train_freq must be an int or (n, 'step') (env steps per update), got {train_freq!r}")
+        train_freq = train_freq[0]
+    return check_positive_int("train_freq", train_freq, 1)
 
-    SB3 ties updates to ``train_freq`` calls of ``env.step``, so their rate per env step changes with
-    ``n_envs``; the paper's algorithms update once per 4 env steps summed over all envs, which each
-    algorithm counts in its own way (DREAM: env steps since the last update; RL2DQN: a fractional
-    update budget that also honours ``gradient_steps`` and ``learning_starts``).
+
+class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
+    """SB3's off-policy loop (``collect_rollouts`` with the ``_sample_action``, ``_store_transition``
+    and ``_on_step`` hooks, then ``train``), with the update budget of the paper's algorithms.
+
+    SB3's argument names keep SB3's meaning:
+
+    * ``learning_starts``: env steps, summed over the envs, before the first update;
+    * ``train_freq``: env steps, summed over the envs, per round of updates, and
+      ``gradient_steps``: updates per round. SB3 counts ``train_freq`` in calls of the vectorised
+      ``env.step``, so its update rate per env step changes with ``n_envs``; the paper updates once
+      every 4 env steps whatever the number of envs. So a rollout here is one vectorised step, and
+      after each the rounds that are due (``train_freq`` env steps each) are run.
+
+    SB3 arguments that do not apply to an algorithm raise an error naming its equivalent
+    (:attr:`sb3_equivalents`).
     """
 
-    def _updates_due(self, rollout: RolloutReturn) -> int:
-        """How many gradient steps to take after ``rollout`` (consumes what it returns)."""
-        raise NotImplementedError
+    #: SB3 constructor arguments the algorithm does not take, each with what to use instead.
+    sb3_equivalents: ClassVar[Dict[str, str]] = {}
+
+    def __init__(
+        self,
+        *args: Any,
+        learning_starts: int,
+        train_freq: Union[int, Tuple[int, str]],
+        gradient_steps: int,
+        **kwargs: Any,
+    ) -> None:
+        check_positive_int("learning_starts", learning_starts, 0)
+        check_positive_int("gradient_steps", gradient_steps, 0)
+        self.train_every = env_steps_per_update(train_freq)
+        self._steps_since_update = 0  # env steps not yet paid for by a round of updates
+        super().__init__(
+            *args,
+            learning_starts=learning_starts,
+            train_freq=TrainFreq(1, TrainFrequencyUnit.STEP),  # a rollout is one vectorised step
+            gradient_steps=gradient_steps,
+            **kwargs,
+        )
+
+    @classmethod
+    def reject_sb3_arguments(cls, kwargs: Dict[str, Any]) -> None:
+        """An error for keyword arguments the constructor does not take, naming the equivalent of
+        SB3's where there is one."""
+        for name in kwargs:
+            if name in cls.sb3_equivalents:
+                raise ValueError(f"{cls.__name__} does not take SB3's {name!r}: {cls.sb3_equivalents[name]}")
+        if kwargs:
+            raise TypeError(f"{cls.__name__}() got unexpected keyword arguments: {', '.join(sorted(kwargs))}")
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        # SB3 turns train_freq into a TrainFreq in _setup_model; ours stays one vectorised step.
+        self.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
+
+    def _updates_due(self, n_env_steps: int) -> int:
+        """Gradient steps owed after ``n_env_steps`` more env steps: ``gradient_steps`` per
+        ``train_freq`` env steps once ``learning_starts`` env steps have passed."""
+        if self.num_timesteps <= self.learning_starts:
+            return 0
+        self._steps_since_update += n_env_steps
+        rounds = self._steps_since_update // self.train_every
+        self._steps_since_update -= rounds * self.train_every
+        return rounds * self.gradient_steps
 
     def learn(
         self: SelfTrialOffPolicyAlgorithm,
@@ -51,7 +114,7 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
             )
             if not rollout.continue_training:
                 break
-            n_updates = self._updates_due(rollout)
+            n_updates = self._updates_due(rollout.episode_timesteps)
             if n_updates > 0:
                 self.train(gradient_steps=n_updates, batch_size=self.batch_size)
         callback.on_training_end()

@@ -16,7 +16,7 @@ Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) sav
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, NamedTuple, Optional
+from typing import Dict, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch as th
@@ -103,10 +103,6 @@ class ExplorationBuffer:
             problem_features=to(self.problem_features[slots]),
         )
 
-    def sample(self, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, TrajectoryBatch]:
-        slots = rng.integers(len(self), size=batch_size)
-        return slots, self.get(slots)
-
 
 class ExecutionBuffer:
     """Ring buffer of execution transitions, each pointing at its trial's exploration trajectory."""
@@ -169,42 +165,6 @@ class ExecutionBuffer:
         self.full = self.full or self.pos + n >= self.capacity
         self.pos = int((self.pos + n) % self.capacity)
 
-    def _stale(self, idx: np.ndarray, exploration: ExplorationBuffer) -> np.ndarray:
-        """Whether each transition's exploration trajectory has been overwritten."""
-        return exploration.generation[self.slots[idx]] != self.generations[idx]
-
-    def sample(self, batch_size: int, exploration: ExplorationBuffer, rng: np.random.Generator) -> ExecutionBatch:
-        """Uniform over the transitions whose exploration trajectory is still stored."""
-        idx = rng.integers(len(self), size=batch_size)
-        for _ in range(100):
-            stale = self._stale(idx, exploration)
-            if not stale.any():
-                break
-            idx[stale] = rng.integers(len(self), size=int(stale.sum()))
-        else:
-            raise RuntimeError("the execution buffer references no stored exploration trajectory: grow buffer_size")
-        return self._batch(idx, self.slots[idx], np.arange(batch_size))
-
-    def sample_episodes(
-        self, n_episodes: int, exploration: ExplorationBuffer, rng: np.random.Generator
-    ) -> ExecutionBatch:
-        """Every stored transition of ``n_episodes`` execution episodes, drawn uniformly among the
-        episodes whose start and exploration trajectory are still stored (the authors' code samples
-        its replay as whole episodes). The batch holds one trajectory per episode."""
-        starts = np.flatnonzero(self.steps[: len(self)] == 0)
-        starts = starts[~self._stale(starts, exploration)]
-        if not len(starts):
-            raise RuntimeError("the execution buffer holds no episode start whose exploration trajectory is stored")
-        heads = starts[rng.integers(len(starts), size=n_episodes)]
-        rows, owners = [], []
-        current, owner = heads, np.arange(n_episodes)
-        while len(current):  # one step of every episode at a time: at most the horizon's length
-            rows.append(current)
-            owners.append(owner)
-            following = self.next_in_episode[current]
-            current, owner = following[following >= 0], owner[following >= 0]
-        return self._batch(np.concatenate(rows), self.slots[heads], np.concatenate(owners))
-
     def episode_links(self) -> np.ndarray:
         """``next_in_episode`` rebuilt from the stored transitions alone (for buffers saved before
         the links were kept): within a trial, a transition continues the one written before it
@@ -222,7 +182,8 @@ class ExecutionBuffer:
         links[a[same]] = b[same]
         return links
 
-    def _batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray) -> ExecutionBatch:
+    def batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray) -> ExecutionBatch:
+        """Transitions ``idx``; transition j reads trajectory ``trajectories[j]`` of ``slots``."""
         to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
         return ExecutionBatch(
             states=to(self.states[idx]),
@@ -261,10 +222,62 @@ class DreamReplayBuffer:
     def __init__(self, exploration: ExplorationBuffer, execution: ExecutionBuffer) -> None:
         self.exploration, self.execution = exploration, execution
 
+    def sample_trajectories(self, batch_size: int, rng: np.random.Generator) -> TrajectoryBatch:
+        """``batch_size`` exploration trajectories drawn uniformly from B_exp."""
+        return self.exploration.get(rng.integers(len(self.exploration), size=batch_size))
+
+    def sample_execution(
+        self, batch_size: int, rng: np.random.Generator, episodes: bool = False
+    ) -> Tuple[ExecutionBatch, TrajectoryBatch]:
+        """An execution batch and the exploration trajectories its transitions read.
+
+        ``episodes=False`` (Algorithm 1): ``batch_size`` transitions drawn uniformly among those
+        whose exploration trajectory is still stored, each with its own trajectory.
+        ``episodes=True`` (the authors' code samples its replay as whole episodes): every stored
+        transition of ``batch_size`` execution episodes, drawn uniformly among the episodes whose
+        start and exploration trajectory are still stored; one trajectory per episode.
+        """
+        execution = self.sample_episodes(batch_size, rng) if episodes else self.sample_transitions(batch_size, rng)
+        return execution, self.exploration.get(execution.slots)
+
+    def sample_transitions(self, batch_size: int, rng: np.random.Generator) -> ExecutionBatch:
+        exe = self.execution
+        idx = rng.integers(len(exe), size=batch_size)
+        for _ in range(100):
+            stale = self.stale(idx)
+            if not stale.any():
+                break
+            idx[stale] = rng.integers(len(exe), size=int(stale.sum()))
+        else:
+            raise RuntimeError("the execution buffer references no stored exploration trajectory: grow buffer_size")
+        return exe.batch(idx, exe.slots[idx], np.arange(batch_size))
+
+    def sample_episodes(self, n_episodes: int, rng: np.random.Generator) -> ExecutionBatch:
+        exe = self.execution
+        starts = np.flatnonzero(exe.steps[: len(exe)] == 0)
+        starts = starts[~self.stale(starts)]
+        if not len(starts):
+            raise RuntimeError("the execution buffer holds no episode start whose exploration trajectory is stored")
+        heads = starts[rng.integers(len(starts), size=n_episodes)]
+        rows, owners = [], []
+        current, owner = heads, np.arange(n_episodes)
+        while len(current):  # one step of every episode at a time: at most the horizon's length
+            rows.append(current)
+            owners.append(owner)
+            following = exe.next_in_episode[current]
+            current, owner = following[following >= 0], owner[following >= 0]
+        return exe.batch(np.concatenate(rows), exe.slots[heads], np.concatenate(owners))
+
+    def stale(self, idx: np.ndarray) -> np.ndarray:
+        """Whether each execution transition's exploration trajectory has been overwritten (such a
+        transition is never sampled)."""
+        exe = self.execution
+        return self.exploration.generation[exe.slots[idx]] != exe.generations[idx]
+
     def execution_reward_counts(self) -> ExecutionRewardCounts:
         """Count B_exe's transitions and their rewards per (problem, instruction) of their trial."""
         exe, n = self.execution, len(self.execution)
-        linked = ~exe._stale(np.arange(n), self.exploration)
+        linked = ~self.stale(np.arange(n))
         problems = self.exploration.problem_features[exe.slots[:n][linked]]
         instructions, rewards = exe.instructions[:n][linked], exe.rewards[:n][linked]
         starts = exe.steps[:n][linked] == 0

@@ -50,8 +50,9 @@ import torch as th
 
 from dream_envs import EXPLORATION, ScriptedAgent, SingleTrialAgent, make_oracle
 from dream_envs.checks import check_choice, check_positive_int
-from sb3_dream.dream.dream import DREAM, DreamBatchTrialAgent
-from sb3_dream.evaluation import _make_envs, evaluate_meta, exhaustive_cases
+from sb3_dream.dream.acting import DreamBatchTrialAgent
+from sb3_dream.dream.dream import DREAM
+from sb3_dream.evaluation import evaluate_meta, exhaustive_cases, make_envs
 
 
 @dataclass
@@ -116,7 +117,7 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
         generator = th.Generator(device=model.device).manual_seed(seed)
         # trial k's code: f(T) of its problem (noisy for "f_noisy")
         ids = np.asarray(problem_ids, dtype=np.int64)
-        self.f = model._encode(ids, noisy=z_source == "f_noisy", generator=generator)
+        self.f = model.encode(ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: Dict[int, np.ndarray] = {}  # trial -> g(tau^exp)
         self.trajectories: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}  # trial -> (s_0..s_T, a_0..a_T-1)
         self._trials_started = 0
@@ -142,7 +143,7 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
         for i in self._starting:
             self.trial[i], self._trials_started = self._trials_started, self._trials_started + 1
         self._starting = []
-        actions, explored = self.model._meta_test_act(self.state, obs, infos, self.deterministic)
+        actions, explored = self.step(obs, infos)
         for i in explored:
             k = int(self.trial[i])
             self.g[k] = self.state.z[i].copy()
@@ -231,7 +232,7 @@ def _privileged_trials(
     n_envs = check_positive_int("n_envs", n_envs)
     if exhaustive and problem_ids is not None:
         raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
-    envs, made = _make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
+    envs, made = make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
     split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))  # the envs checked ``split``
     if exhaustive:
         return envs, made, split_ids, exhaustive_cases(envs[0], split, n_trials)[0]
@@ -294,7 +295,7 @@ def diagnose(
         return float(weights @ ((agent.codes() - f) ** 2).sum(axis=1))
 
     optimal = results.get("optimal_exploration")
-    f_split = model._encode(split_ids, noisy=False)
+    f_split = model.encode(split_ids, noisy=False)
     sq_norms = (f_split**2).sum(axis=1)
     # mean over ordered pairs T != T' of ||f(T) - f(T')||^2, without the [n, n, z] tensor
     n = len(split_ids)
@@ -387,8 +388,9 @@ def _rewarded(model: DREAM, problem_ids: np.ndarray, agent: PrivilegedBatchAgent
     actions = np.zeros((len(trajectories), longest), trajectories[0][1].dtype)
     for k, (s, a) in enumerate(trajectories):
         states[k, : len(s)], actions[k, : len(a)] = s, a
-    g = model.policy.decoder(model._obs_tensor(states), model._obs_tensor(actions))  # [n, T+1, z]
-    f = model.policy.encoder(model._obs_tensor(model.problem_table[problem_ids]))
+    tensor = lambda a: th.as_tensor(a, device=model.device)  # noqa: E731
+    g = model.policy.decoder(tensor(states), tensor(actions))  # [n, T+1, z]
+    f = model.policy.encoder(tensor(model.problem_table[problem_ids]))
     rewards = model.exploration_rewards(g, f, th.as_tensor(lengths, device=model.device)).cpu().numpy()
     return ExplorationGains(
         problem_ids=problem_ids,

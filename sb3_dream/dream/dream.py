@@ -29,27 +29,36 @@ from __future__ import annotations
 import io
 import os
 import pathlib
+import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Dict, List, Optional, Sequence, Tuple, Type, TypeVar, Union
+from typing import Any, Callable, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
 
 import numpy as np
 import torch as th
-import torch.nn.functional as F
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.save_util import load_from_pkl
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, RolloutReturn, Schedule, TrainFreq
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import safe_mean
-from stable_baselines3.common.vec_env import VecEnv
 
-from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent, SingleTrialAgent
+from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent
 from dream_envs.checks import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
+from sb3_dream.dream import losses
+from sb3_dream.dream.acting import (
+    REQUIRED_KEYS,
+    DreamBatchTrialAgent,
+    DreamTrialAgent,
+    TrialState,
+    act,
+    batch_observation,
+    decode,
+    model_states,
+)
 from sb3_dream.dream.buffers import (
     DreamReplayBuffer,
     ExecutionBatch,
@@ -57,11 +66,10 @@ from sb3_dream.dream.buffers import (
     ExplorationBuffer,
     TrajectoryBatch,
 )
-from sb3_dream.dream.policies import DreamPolicy, ExecutionQNetwork
+from sb3_dream.dream.policies import DreamPolicy
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 
-REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
 # What the execution Q's target conditions on (DREAM(execution_target_z=...)).
 EXECUTION_TARGET_Z = ("own", "encoder")
 EXECUTION_SAMPLING = ("transitions", "episodes")
@@ -73,56 +81,6 @@ def available_cores() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
-
-
-@dataclass
-class TrialState:
-    """What DREAM remembers about the current trial of each of ``n`` envs while acting."""
-
-    hidden: Tuple[th.Tensor, th.Tensor]  # exploration LSTM state, each [1, n, hidden]
-    states: np.ndarray  # [n, H+1, ...] exploration states s_0 .. s_T
-    actions: np.ndarray  # [n, H]
-    prev_actions: np.ndarray  # [n, H+1]
-    prev_rewards: np.ndarray  # [n, H+1]
-    length: np.ndarray  # [n] exploration steps taken
-    z: np.ndarray  # [n, z_dim] the trial's z for execution (valid where z_ready)
-    z_ready: np.ndarray  # [n] bool
-    execution_step: np.ndarray  # [n] the step within the current execution episode
-    # execution LSTM state, each [1, n, size] (size 0 for the paper's feed-forward execution Q)
-    execution_hidden: Tuple[th.Tensor, th.Tensor]
-
-    def reset(self, idx: np.ndarray) -> None:
-        """Forget the trials of envs ``idx``: a new trial starts there."""
-        for hidden in (*self.hidden, *self.execution_hidden):
-            hidden[:, idx] = 0.0
-        self.length[idx] = 0
-        self.z_ready[idx] = False
-        self.execution_step[idx] = 0
-        self.prev_actions[idx] = 0
-        self.prev_rewards[idx] = 0.0
-
-    def as_tuple(self) -> Tuple[np.ndarray, ...]:
-        h, c, exe_h, exe_c = (t.detach().cpu().numpy() for t in (*self.hidden, *self.execution_hidden))
-        return (
-            h,
-            c,
-            self.states,
-            self.actions,
-            self.prev_actions,
-            self.prev_rewards,
-            self.length,
-            self.z,
-            self.z_ready,
-            self.execution_step,
-            exe_h,
-            exe_c,
-        )
-
-    @classmethod
-    def from_tuple(cls, state: Tuple[np.ndarray, ...], device: th.device) -> "TrialState":
-        h, c, *rest, exe_h, exe_c = state
-        tensor = lambda a: th.as_tensor(a, device=device).clone()  # noqa: E731
-        return cls((tensor(h), tensor(c)), *(np.array(a, copy=True) for a in rest), (tensor(exe_h), tensor(exe_c)))
 
 
 class DREAM(TrialOffPolicyAlgorithm):
@@ -139,7 +97,12 @@ class DREAM(TrialOffPolicyAlgorithm):
     :param execution_buffer_size: execution transitions kept (the paper's 100K experiences).
     :param batch_size: trajectories per exploration update and transitions per execution update.
     :param gamma: discount factor of both policies.
-    :param train_freq: env steps (summed over envs) per update of each part (the paper's 4).
+    :param learning_starts: env steps (summed over envs) before any update (SB3's meaning; 0 by
+        default: the paper's starts count trials, ``exploration_learning_starts`` and
+        ``execution_learning_starts``).
+    :param train_freq: env steps (summed over envs) per round of updates (the paper's 4): an int or
+        SB3's ``(n, "step")``.
+    :param gradient_steps: updates of each part per round (the paper's 1).
     :param target_update_interval: updates between target-network syncs (the paper's 5000).
     :param exploration_learning_starts: trials collected before the exploration policy learns.
     :param execution_learning_starts: trials collected before the execution side learns.
@@ -150,7 +113,7 @@ class DREAM(TrialOffPolicyAlgorithm):
     :param execution_final_eps: the execution policy's own final epsilon; None (default) is
         ``exploration_final_eps``, the paper's shared schedule. A deviation for envs whose execution
         learns from rare rewards long after its epsilon has decayed (SignNav3D's pickups, see
-        docs/results.md), leaving the exploration policy's trajectories as they were.
+        docs/results/signnav3d.md), leaving the exploration policy's trajectories as they were.
     :param execution_eps_decay_steps: execution steps over which the execution epsilon decays; None
         (default) is ``eps_decay_steps``.
     :param reward_penalty: c in Equation 5, subtracted from every exploration reward.
@@ -169,9 +132,8 @@ class DREAM(TrialOffPolicyAlgorithm):
         (the exploration rewards' f and g, the target decoder's z), in a second thread while this
         one runs the execution update (their networks and optimizers are disjoint once the rewards
         are computed; the execution step waits for that). The same computations and the same
-        results as sequential updates (tested), so it changes the speed only: about 1.2-1.6x
-        faster updates when a second CPU core is free for this run (see docs/speed.md),
-        slower when it is not (several runs sharing the cores: the experiment runner
+        results as sequential updates (tested), so it changes the speed only: faster
+        when a second CPU core is free for this run (measured in docs/speed.md), slower when it is not (several runs sharing the cores: the experiment runner
         turns it off when it runs more than one at once). ``"auto"`` (default): on when the
         networks are on the CPU and this process may run on more than one core.
     :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
@@ -203,6 +165,17 @@ class DREAM(TrialOffPolicyAlgorithm):
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
+    sb3_equivalents: ClassVar[Dict[str, str]] = {
+        "exploration_fraction": "its epsilons decay over env steps: eps_decay_steps (execution_eps_decay_steps "
+        "for the execution policy's own)",
+        "tau": "its target networks are copied every target_update_interval updates (the paper's hard updates)",
+        "replay_buffer_class": "it keeps two buffers of its own, sized by buffer_size (exploration trajectories) "
+        "and execution_buffer_size (execution transitions)",
+        "replay_buffer_kwargs": "its buffers are sized by buffer_size and execution_buffer_size",
+        "optimize_memory_usage": "its buffers store each state once per step already",
+        "action_noise": "its actions are discrete: exploration is epsilon-greedy (exploration_initial_eps, "
+        "exploration_final_eps, eps_decay_steps)",
+    }
     policy: DreamPolicy
     replay_buffer: DreamReplayBuffer  # type: ignore[assignment]
 
@@ -215,7 +188,9 @@ class DREAM(TrialOffPolicyAlgorithm):
         execution_buffer_size: int = 100_000,
         batch_size: int = 32,
         gamma: float = 0.99,
-        train_freq: int = 4,
+        learning_starts: int = 0,
+        train_freq: Union[int, Tuple[int, str]] = 4,
+        gradient_steps: int = 1,
         target_update_interval: int = 5000,
         exploration_learning_starts: int = 8000,
         execution_learning_starts: int = 500,
@@ -242,7 +217,9 @@ class DREAM(TrialOffPolicyAlgorithm):
         seed: Optional[int] = None,
         device: Union[th.device, str] = "auto",
         _init_setup_model: bool = True,
+        **sb3_kwargs: Any,
     ) -> None:
+        self.reject_sb3_arguments(sb3_kwargs)
         if env is None and not (isinstance(policy, type) or policy in self.policy_aliases):
             policy, env = "DreamPolicy", policy  # DREAM("MetaBus-v0"): the env is the only argument
         if env is None and _init_setup_model:
@@ -251,7 +228,6 @@ class DREAM(TrialOffPolicyAlgorithm):
             ("buffer_size", buffer_size, 1),
             ("execution_buffer_size", execution_buffer_size, 1),
             ("batch_size", batch_size, 1),
-            ("train_freq", train_freq, 1),
             ("target_update_interval", target_update_interval, 1),
             ("exploration_learning_starts", exploration_learning_starts, 0),
             ("execution_learning_starts", execution_learning_starts, 0),
@@ -269,17 +245,22 @@ class DREAM(TrialOffPolicyAlgorithm):
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
         check_choice("execution_sampling", execution_sampling, EXECUTION_SAMPLING)
+        if policy_kwargs and "z_dim" in policy_kwargs and policy_kwargs["z_dim"] != z_dim:
+            raise ValueError(
+                f"z_dim is DREAM's argument: pass z_dim={policy_kwargs['z_dim']!r} to DREAM, not in policy_kwargs "
+                f"(got policy_kwargs z_dim={policy_kwargs['z_dim']!r} and z_dim={z_dim!r})"
+            )
 
         super().__init__(
             policy,
             env,
             learning_rate,
             buffer_size=buffer_size,
-            learning_starts=0,
+            learning_starts=learning_starts,
             batch_size=batch_size,
             gamma=gamma,
             train_freq=train_freq,
-            gradient_steps=1,
+            gradient_steps=gradient_steps,
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
@@ -290,7 +271,6 @@ class DREAM(TrialOffPolicyAlgorithm):
             sde_support=False,
             supported_action_spaces=(spaces.Discrete,),
         )
-        self._train_freq_steps = train_freq
         self.execution_buffer_size = execution_buffer_size
         self.target_update_interval = target_update_interval
         self.exploration_learning_starts = exploration_learning_starts
@@ -312,6 +292,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.execution_target_z = execution_target_z
         self.execution_sampling = execution_sampling
         self._update_thread: Optional[ThreadPoolExecutor] = None
+        self._warned_stateless_predict = False
 
         if self.env is not None:
             self._check_trial_env(self.observation_space)
@@ -325,7 +306,6 @@ class DREAM(TrialOffPolicyAlgorithm):
         self._n_trials = 0  # exploration trajectories collected
         self._n_exploration_steps = 0
         self._n_execution_steps = 0
-        self._steps_since_update = 0
         self._z_from_encoder: Optional[np.ndarray] = None  # per env: this trial's z source
         if _init_setup_model:
             self._setup_model()
@@ -343,6 +323,8 @@ class DREAM(TrialOffPolicyAlgorithm):
             raise ValueError(f"the observation space lacks the trial keys {missing} (see dream_envs.TrialEnv)")
 
     def _setup_model(self) -> None:
+        if "_train_freq_steps" in self.__dict__:  # a model saved before train_freq moved to the shared base
+            self.train_every = self.__dict__.pop("_train_freq_steps")
         self._setup_lr_schedule()
         self.set_random_seed(self.seed)
         shared = ("exploration_initial_eps", "exploration_final_eps", "eps_decay_steps")
@@ -383,7 +365,6 @@ class DREAM(TrialOffPolicyAlgorithm):
         )
         execution = ExecutionBuffer(self.execution_buffer_size, self.observation_space, self.device)
         self.replay_buffer = DreamReplayBuffer(exploration, execution)
-        self.train_freq = TrainFreq(1, "step")  # type: ignore[assignment]  # we count env steps ourselves
         self._trial_state: Optional[TrialState] = None
 
     def _excluded_save_params(self) -> List[str]:
@@ -402,24 +383,11 @@ class DREAM(TrialOffPolicyAlgorithm):
         self.replay_buffer = buffer
 
     def new_trial_state(self, n_envs: int) -> TrialState:
-        h = self.exploration_horizon
-        obs_space = self.observation_space["obs"]
-        zeros = lambda size: th.zeros(1, n_envs, size, device=self.device)  # noqa: E731
-        hidden_size, execution_size = self.policy.exploration_q.hidden_size, self.policy.execution_q.recurrent_size
-        return TrialState(
-            hidden=(zeros(hidden_size), zeros(hidden_size)),
-            states=np.zeros((n_envs, h + 1, *obs_space.shape), dtype=self.replay_buffer.exploration.states.dtype),
-            actions=np.zeros((n_envs, h), dtype=np.int64),
-            prev_actions=np.zeros((n_envs, h + 1), dtype=np.int64),
-            prev_rewards=np.zeros((n_envs, h + 1), dtype=np.float32),
-            length=np.zeros(n_envs, dtype=np.int64),
-            z=np.zeros((n_envs, self.z_dim), dtype=np.float32),
-            z_ready=np.zeros(n_envs, dtype=bool),
-            execution_step=np.zeros(n_envs, dtype=np.int64),
-            execution_hidden=(zeros(execution_size), zeros(execution_size)),
-        )
+        """The acting state of ``n_envs`` trials that have not started."""
+        state_dtype = self.replay_buffer.exploration.states.dtype
+        return TrialState.zeros(self.policy, n_envs, self.exploration_horizon, state_dtype)
 
-    # ------------------------------------------------------------------ epsilons
+    # ------------------------------------------------------------------ epsilons and codes
     @property
     def exploration_epsilon(self) -> float:
         """Epsilon of the exploration policy (decays with exploration-episode steps)."""
@@ -430,107 +398,26 @@ class DREAM(TrialOffPolicyAlgorithm):
         """Epsilon of the execution policy (decays with execution-episode steps)."""
         return self._execution_epsilon_schedule(self._n_execution_steps)
 
-    # ------------------------------------------------------------------ acting
-    def _obs_tensor(self, x: np.ndarray) -> th.Tensor:
-        return th.as_tensor(np.asarray(x), device=self.device)
-
-    @th.no_grad()
-    def _decode(self, state: TrialState, idx: np.ndarray, n_transitions: np.ndarray) -> np.ndarray:
-        """g(tau_:n) for envs ``idx`` from their stored exploration trajectories (one fused pass)."""
-        t = int(max(1, n_transitions.max()))
-        g = self.policy.decoder(
-            self._obs_tensor(state.states[idx, : t + 1]),
-            self._obs_tensor(state.actions[idx, :t]),
-            th.as_tensor(n_transitions, device=self.device),
-        )  # [k, z]
-        return g.cpu().numpy()
-
-    @th.no_grad()
-    def _encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
-        """z ~ N(f(T), rho^2 I) (or f(T) without the bottleneck's noise); the noise from ``generator``
-        (default: torch's global one)."""
-        f = self.policy.encoder(self._obs_tensor(self.problem_table[problem_ids]))
-        return (self._add_encoder_noise(f, generator) if noisy else f).cpu().numpy()
-
     @property
     def encoder_noise(self) -> bool:
         """Whether z from the encoder is noisy: with the bottleneck and rho^2 > 0."""
         return self.bottleneck and self.encoder_variance > 0
 
-    def _add_encoder_noise(self, f: th.Tensor, generator: Optional[th.Generator] = None) -> th.Tensor:
-        """f + N(0, rho^2 I) where the encoder is noisy (Equation 2's f branch), else f unchanged."""
+    def sample_encoder_z(self, f: th.Tensor, generator: Optional[th.Generator] = None) -> th.Tensor:
+        """z ~ F(z | T) = N(f(T), rho^2 I) where the encoder is noisy (Equation 2's f branch), else f;
+        the noise from ``generator`` (default: torch's global one)."""
         if not self.encoder_noise:
             return f
         noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
         return f + noise * float(np.sqrt(self.encoder_variance))
 
     @th.no_grad()
-    def _act(
-        self, obs: Dict[str, np.ndarray], state: TrialState, exploration_eps: float, execution_eps: float
-    ) -> np.ndarray:
-        """One batched forward per policy for ``n`` envs; records the exploration steps in ``state``."""
-        n = len(obs["phase"])
-        phase = np.asarray(obs["phase"]).reshape(n)
-        actions = np.zeros(n, dtype=np.int64)
-        n_actions = int(self.action_space.n)
+    def encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
+        """The encoder's z of problems ``problem_ids``: sampled from F(z | T) if ``noisy``, else f(T)."""
+        f = self.policy.encoder(th.as_tensor(self.problem_table[problem_ids], device=self.device))
+        return (self.sample_encoder_z(f, generator) if noisy else f).cpu().numpy()
 
-        explore = np.flatnonzero(phase == EXPLORATION)
-        if len(explore):
-            t = state.length[explore]
-            state.states[explore, t] = obs["obs"][explore]
-            state.prev_actions[explore, t] = np.asarray(obs["prev_action"]).reshape(n)[explore]
-            state.prev_rewards[explore, t] = np.asarray(obs["prev_reward"]).reshape(n)[explore]
-            hidden = (state.hidden[0][:, explore], state.hidden[1][:, explore])
-            q, (h, c) = self.policy.exploration_q(
-                self._obs_tensor(obs["obs"][explore])[:, None],
-                self._obs_tensor(state.prev_actions[explore, t])[:, None],
-                self._obs_tensor(state.prev_rewards[explore, t])[:, None, None],
-                hidden,
-                self._obs_tensor(t)[:, None] if self.policy.exploration_time_input else None,
-            )
-            state.hidden[0][:, explore], state.hidden[1][:, explore] = h, c
-            chosen = q[:, 0].argmax(dim=-1).cpu().numpy()
-            chosen = self._epsilon_greedy(chosen, exploration_eps, n_actions)
-            actions[explore] = chosen
-            state.actions[explore, np.minimum(t, self.exploration_horizon - 1)] = chosen
-            state.length[explore] = np.minimum(t + 1, self.exploration_horizon)
-
-        execute = np.flatnonzero(phase == EXECUTION)
-        if len(execute):
-            missing = execute[~state.z_ready[execute]]
-            if len(missing):
-                # The last exploration state is unknown here (only info["final_obs"] holds it):
-                # use g of the trajectory without its last transition.
-                state.z[missing] = self._decode(state, missing, np.maximum(state.length[missing] - 1, 0))
-                state.z_ready[missing] = True
-            first = None
-            if "episode_start" in obs:  # the step within the execution episode
-                first = np.asarray(obs["episode_start"]).reshape(n)[execute].astype(bool)
-                state.execution_step[execute] = np.where(first, 0, state.execution_step[execute] + 1)
-            net = self.policy.execution_q
-            embedding = net.embed(
-                self._obs_tensor(obs["obs"][execute]),
-                self._obs_tensor(obs["instruction"][execute]),
-                self._obs_tensor(state.execution_step[execute]) if self.policy.execution_time_input else None,
-            )
-            if net.recurrent:  # one LSTM step, from zeros where an execution episode starts
-                assert first is not None  # _batch_observation requires episode_start
-                keep = self._obs_tensor(~first)[None, :, None].to(embedding.dtype)
-                hidden = tuple(h[:, execute] * keep for h in state.execution_hidden)
-                out, (h, c) = net.recur(embedding[:, None], hidden)
-                state.execution_hidden[0][:, execute], state.execution_hidden[1][:, execute] = h, c
-                embedding = out[:, 0]
-            q = net.q_values(embedding, self._obs_tensor(state.z[execute]))
-            chosen = q.argmax(dim=-1).cpu().numpy()
-            actions[execute] = self._epsilon_greedy(chosen, execution_eps, n_actions)
-        return actions
-
-    def _epsilon_greedy(self, greedy: np.ndarray, eps: float, n_actions: int) -> np.ndarray:
-        if eps <= 0:
-            return greedy
-        explore = self._rng.random(len(greedy)) < eps
-        return np.where(explore, self._rng.integers(n_actions, size=len(greedy)), greedy)
-
+    # ------------------------------------------------------------------ acting
     def end_exploration(
         self, state: TrialState, idx: np.ndarray, final_obs: np.ndarray, problem_ids: Optional[np.ndarray] = None
     ) -> None:
@@ -539,7 +426,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         With ``problem_ids`` (training) the trajectories are stored and z alternates between the
         encoder and the decoder per trial; without (meta-test) z = g(tau^exp).
         """
-        state.states[idx, state.length[idx]] = self._model_states(final_obs)
+        state.states[idx, state.length[idx]] = model_states(final_obs, self.observation_space["obs"])
         use_encoder = np.zeros(len(idx), dtype=bool)
         if problem_ids is not None:
             assert self._z_from_encoder is not None
@@ -556,9 +443,9 @@ class DREAM(TrialOffPolicyAlgorithm):
                 self._slots[e], self._generations[e] = slot, generation
             self._n_trials += len(idx)
             self._exploration_lengths.extend(state.length[idx].tolist())
-        z = self._decode(state, idx, state.length[idx])
+        z = decode(self.policy, state, idx, state.length[idx])
         if use_encoder.any():
-            z[use_encoder] = self._encode(problem_ids[use_encoder], noisy=True)
+            z[use_encoder] = self.encode(problem_ids[use_encoder], noisy=True)
         state.z[idx], state.z_ready[idx] = z, True
 
     def predict(
@@ -572,43 +459,34 @@ class DREAM(TrialOffPolicyAlgorithm):
 
         ``state`` carries the trial: the exploration LSTM state, the exploration trajectory and,
         once exploration is over, z = g(tau^exp); it is reset where ``episode_start`` (a new
-        trial) is set. ``deterministic=False`` acts epsilon-greedily with the current epsilons.
-        ``predict`` sees observations only, so the exploration episode's last state (in
-        ``info["final_obs"]``) is not available to the decoder here; :meth:`as_trial_agent`
-        (used by :func:`sb3_dream.evaluation.evaluate_meta`) passes it.
+        trial) is set. Pass back the state each call returns: without it every call starts a new
+        trial (a warning says so once). ``deterministic=False`` acts epsilon-greedily with the
+        current epsilons. ``predict`` sees observations only, so the exploration episode's last
+        state (in ``info["final_obs"]``) is not available to the decoder here;
+        :meth:`as_trial_agent` (used by :func:`sb3_dream.evaluation.evaluate_meta`) passes it.
         """
         self.policy.set_training_mode(False)
-        obs, vectorized = self._batch_observation(observation)
+        obs, vectorized = batch_observation(observation, self.policy)
         n = len(obs["phase"])
-        trial = self.new_trial_state(n) if state is None else TrialState.from_tuple(state, self.device)
+        if state is None:
+            if np.any(np.asarray(obs["phase"]) != EXPLORATION) and not self._warned_stateless_predict:
+                self._warned_stateless_predict = True
+                warnings.warn(
+                    "DREAM.predict was called without state in an execution episode: the state carries the "
+                    "trial's exploration trajectory, from which the execution policy's z is decoded, so without "
+                    "it execution acts on an empty exploration. Pass the state returned by the previous call.",
+                    stacklevel=2,
+                )
+            trial = self.new_trial_state(n)
+        else:
+            trial = TrialState.from_tuple(state, self.device)
         starts = np.ones(n, bool) if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(n)
         if state is None:
             starts[:] = True
         trial.reset(np.flatnonzero(starts))
         eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
-        actions = self._act(obs, trial, *eps)
+        actions = act(self.policy, obs, trial, *eps, self._rng)
         return (actions if vectorized else actions[0:1].reshape(())), trial.as_tuple()
-
-    def _model_states(self, states: np.ndarray) -> np.ndarray:
-        """States in the model's layout: SB3 stores images channel-first (``VecTransposeImage``),
-        while a raw env and ``info["final_obs"]`` give them channel-last."""
-        shape = self.observation_space["obs"].shape
-        states = np.asarray(states)
-        if len(shape) == 3 and states.shape[-3:] != shape and states.shape[-3:] == (shape[1], shape[2], shape[0]):
-            return np.moveaxis(states, -1, -3)
-        return states
-
-    def _batch_observation(self, observation: Dict[str, Any]) -> Tuple[Dict[str, np.ndarray], bool]:
-        needs_start = self.policy.execution_time_input or self.policy.execution_recurrent
-        required = REQUIRED_KEYS + (("episode_start",) if needs_start else ())
-        if not isinstance(observation, dict) or any(k not in observation for k in required):
-            raise ValueError(f"observation must be a dict with the trial keys {required}")
-        obs = {k: np.asarray(v) for k, v in observation.items()}
-        obs["obs"] = self._model_states(obs["obs"])
-        vectorized = obs["obs"].shape != self.observation_space["obs"].shape
-        if vectorized:
-            return obs, True
-        return {k: v[None] for k, v in obs.items()}, False
 
     def as_trial_agent(self, deterministic: bool = True) -> ScriptedAgent:
         """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
@@ -618,25 +496,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         """:meth:`as_trial_agent` for trials played side by side (see :mod:`sb3_dream.evaluation`)."""
         return DreamBatchTrialAgent(self, deterministic)
 
-    def _meta_test_act(
-        self, state: TrialState, observation: Dict[str, Any], infos: Sequence[Dict[str, Any]], deterministic: bool
-    ) -> Tuple[np.ndarray, np.ndarray]:
-        """The actions of the envs in ``state`` at meta-test, and the envs whose exploration episode
-        ``infos`` say just ended: their z is set first, g of the whole trajectory with
-        ``info["final_obs"]`` as its last state."""
-        self.policy.set_training_mode(False)
-        obs, _ = self._batch_observation(observation)
-        explored = np.array(
-            [k for k, info in enumerate(infos) if info.get("episode_end") and info.get("episode_phase") == EXPLORATION],
-            dtype=np.int64,
-        )
-        if len(explored):
-            final_obs = np.stack([np.asarray(infos[k]["final_obs"]) for k in explored])
-            self.end_exploration(state, explored, final_obs)
-        eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
-        return self._act(obs, state, *eps), explored
-
-    # ------------------------------------------------------------------ collecting
+    # ------------------------------------------------------------------ collecting (SB3's hooks)
     def _setup_learn(
         self,
         total_timesteps: int,
@@ -662,81 +522,44 @@ class DREAM(TrialOffPolicyAlgorithm):
         }
         return total_timesteps, callback
 
-    def collect_rollouts(
+    def _sample_action(
+        self, learning_starts: int, action_noise: Optional[ActionNoise] = None, n_envs: int = 1
+    ) -> Tuple[np.ndarray, np.ndarray]:
+        """Both policies' epsilon-greedy actions for all envs, one forward each (Algorithm 1, lines 7 and 12)."""
+        assert self._trial_state is not None
+        actions = act(
+            self.policy, self._last_obs, self._trial_state, self.exploration_epsilon, self.execution_epsilon, self._rng
+        )
+        return actions, actions
+
+    def _store_transition(
         self,
-        env: VecEnv,
-        callback: BaseCallback,
-        train_freq: TrainFreq,
         replay_buffer: ReplayBuffer,
-        action_noise: Optional[ActionNoise] = None,
-        learning_starts: int = 0,
-        log_interval: Optional[int] = None,
-    ) -> RolloutReturn:
-        """Step all envs until ``train_freq`` env steps have passed since the last update."""
-        assert self._trial_state is not None and self._z_from_encoder is not None
-        self.policy.set_training_mode(False)
-        state, n = self._trial_state, env.num_envs
-        callback.on_rollout_start()
-        n_steps, n_trials = 0, 0
-        while self._steps_since_update < self.train_freq_steps:
-            obs = self._last_obs
-            phase = np.asarray(obs["phase"]).reshape(n)
-            actions = self._act(obs, state, self.exploration_epsilon, self.execution_epsilon)
-            new_obs, rewards, dones, infos = env.step(actions)
-
-            self.num_timesteps += n
-            n_steps += 1
-            self._steps_since_update += n
-            self._n_exploration_steps += int((phase == EXPLORATION).sum())
-            self._n_execution_steps += int((phase == EXECUTION).sum())
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return RolloutReturn(n_steps * n, n_trials, continue_training=False)
-            self._update_info_buffer(infos, dones)
-            self._store_step(obs, actions, rewards, new_obs, dones, infos, phase)
-            self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
-            self._last_obs = new_obs
-
-            for e in np.flatnonzero(dones):
-                n_trials += 1
-                self._episode_num += 1
-                state.reset(np.array([e]))
-                self._z_from_encoder[e] = not self._z_from_encoder[e]  # alternate z sources across trials
-                if log_interval is not None and self._episode_num % log_interval == 0:
-                    self.dump_logs()
-        callback.on_rollout_end()
-        return RolloutReturn(n_steps * n, n_trials, continue_training=True)
-
-    @property
-    def train_freq_steps(self) -> int:
-        return int(self._train_freq_steps)
-
-    def _store_step(
-        self,
-        obs: Dict[str, np.ndarray],
-        actions: np.ndarray,
-        rewards: np.ndarray,
-        new_obs: Dict[str, np.ndarray],
+        buffer_action: np.ndarray,
+        new_obs: Dict[str, np.ndarray],  # type: ignore[override]
+        reward: np.ndarray,
         dones: np.ndarray,
         infos: List[Dict[str, Any]],
-        phase: np.ndarray,
     ) -> None:
-        state = self._trial_state
-        assert state is not None
+        """Store tau^exp where an exploration episode ended (and set the trial's z), each execution
+        transition with a link to its trial's tau^exp (Algorithm 1, lines 9 and 13); start new trials."""
+        state, obs = self._trial_state, self._last_obs
+        assert state is not None and self._z_from_encoder is not None and isinstance(obs, dict)
+        phase = np.asarray(obs["phase"]).reshape(len(dones))
+        self._n_exploration_steps += int((phase == EXPLORATION).sum())
+        self._n_execution_steps += int((phase == EXECUTION).sum())
         ended = np.array([bool(info.get("episode_end")) for info in infos])
-        # exploration episodes that just ended: store tau^exp, set the trial's z
         explored = np.flatnonzero((phase == EXPLORATION) & ended)
         if len(explored):
             final = np.stack([infos[e]["final_obs"] for e in explored])
             problem_ids = np.array([infos[e]["problem_id"] for e in explored])
             self.end_exploration(state, explored, final, problem_ids)
-        # execution transitions, each pointing at its trial's exploration trajectory
         executed = np.flatnonzero(phase == EXECUTION)
         if len(executed):
             next_states = np.array(new_obs["obs"][executed], copy=True)
             for k, e in enumerate(executed):
                 if ended[e]:
-                    next_states[k] = self._model_states(infos[e]["final_obs"])
+                    next_states[k] = model_states(infos[e]["final_obs"], self.observation_space["obs"])
                     source = "f" if self._z_from_encoder[e] else "g"
                     self._returns_by_source[source].append(infos[e]["episode_return"])
             truncated = np.array([bool(infos[e].get("episode_truncated", False)) for e in executed])
@@ -745,8 +568,8 @@ class DREAM(TrialOffPolicyAlgorithm):
                 {
                     "states": obs["obs"][executed],
                     "instructions": obs["instruction"][executed],
-                    "actions": actions[executed],
-                    "rewards": rewards[executed],
+                    "actions": buffer_action[executed],
+                    "rewards": reward[executed],
                     "next_states": next_states,
                     "dones": terminal.astype(np.float32),
                     "slots": self._slots[executed],
@@ -755,6 +578,10 @@ class DREAM(TrialOffPolicyAlgorithm):
                 },
                 envs=executed,
             )
+        self._last_obs = new_obs
+        for e in np.flatnonzero(dones):
+            state.reset(np.array([e]))
+            self._z_from_encoder[e] = not self._z_from_encoder[e]  # alternate z sources across trials
 
     def learn(
         self: SelfDREAM,
@@ -767,12 +594,6 @@ class DREAM(TrialOffPolicyAlgorithm):
     ) -> SelfDREAM:
         """Train for ``total_timesteps`` env steps (``log_interval`` counts trials)."""
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
-
-    def _updates_due(self, rollout: RolloutReturn) -> int:
-        """One update of each part per ``train_freq`` env steps, summed over envs (Algorithm 1)."""
-        n_updates = self._steps_since_update // self.train_freq_steps
-        self._steps_since_update -= n_updates * self.train_freq_steps
-        return n_updates
 
     # ------------------------------------------------------------------ training
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
@@ -801,25 +622,16 @@ class DREAM(TrialOffPolicyAlgorithm):
         (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21)."""
         buffers, stats = self.replay_buffer, {}
         if exploration_ready:
-            explored = buffers.exploration.get(self._rng.integers(len(buffers.exploration), size=batch_size))
+            explored = buffers.sample_trajectories(batch_size, self._rng)
         if execution_ready:
-            exe, traj = self._sample_execution(batch_size)
+            exe, traj = buffers.sample_execution(batch_size, self._rng, episodes=self.execution_sampling == "episodes")
         if self.updates_in_parallel and exploration_ready and execution_ready:
             return self._parallel_update(explored, exe, traj)
         if exploration_ready:
             stats.update(self._exploration_update(explored, *self._reward_codes(explored)))
         if execution_ready:
-            stats.update(self._execution_losses(exe, traj))
+            stats.update(self._execution_update(exe, traj))
         return stats
-
-    def _sample_execution(self, batch_size: int) -> Tuple[ExecutionBatch, TrajectoryBatch]:
-        """An execution batch (``execution_sampling``) and the exploration trajectories it reads."""
-        buffers = self.replay_buffer
-        if self.execution_sampling == "episodes":
-            exe = buffers.execution.sample_episodes(batch_size, buffers.exploration, self._rng)
-        else:
-            exe = buffers.execution.sample(batch_size, buffers.exploration, self._rng)
-        return exe, buffers.exploration.get(exe.slots)
 
     @th.no_grad()
     def _reward_codes(self, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
@@ -853,69 +665,51 @@ class DREAM(TrialOffPolicyAlgorithm):
         target_z_g = worker.submit(self._target_decoder_z, traj) if self.execution_target_z == "own" else None
         codes = worker.submit(self._reward_codes, explored)
         exploration = worker.submit(lambda: self._exploration_update(explored, *codes.result()))
-        stats = self._execution_losses(
+        stats = self._execution_update(
             exe, traj, target_z_g=None if target_z_g is None else target_z_g.result, before_step=codes.result
         )
         return {**exploration.result(), **stats}
 
-    def _execution_losses(
+    def _execution_update(
         self,
         exe: ExecutionBatch,
         traj: TrajectoryBatch,
         target_z_g: Optional[Callable[[], th.Tensor]] = None,
         before_step: Optional[Callable[[], Any]] = None,
     ) -> Dict[str, float]:
-        """Execution DDQN with z from g and from F, the bottleneck and the decoder loss, one step.
+        """One step on the execution DDQN with z from g and from F, the bottleneck and the decoder
+        loss (Equations 2-4), all on the same execution samples (Appendix A).
 
-        Everything here is computed on the same execution samples (Appendix A: the bottleneck and
-        the decoder are updated "from the same execution replay buffer samples"): g of every prefix
-        of the batch's exploration trajectories ``traj`` (one decoder pass), and f(T); transition j
-        reads trajectory ``exe.trajectories[j]``.
-        ``target_z_g`` gives the target decoder's z when another thread computes it;
-        ``before_step`` is called before the optimizer changes the networks.
+        One decoder pass gives g of every prefix of the batch's trajectories ``traj``; transition j
+        reads trajectory ``exe.trajectories[j]``. ``target_z_g`` gives the target decoder's z when
+        another thread computes it; ``before_step`` is called before the optimizer changes the networks.
         """
-        policy = self.policy
+        policy, net = self.policy, self.policy.execution_q
         g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix in one pass
         f = policy.encoder(traj.problem_features)  # [N, z]
-        n_exe, owner = len(exe.actions), exe.trajectories
+        owner = exe.trajectories
         z_g = g_all[th.arange(len(g_all), device=self.device), traj.lengths][owner]  # g(tau^exp) of each trial
-        z_f = self._add_encoder_noise(f[owner])
+        z_f = self.sample_encoder_z(f[owner])
 
         # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
         z = th.cat([z_g, z_f])
-        actions, rewards, dones = exe.actions.repeat(2), exe.rewards.repeat(2), exe.dones.repeat(2)
-        net, next_embedding = policy.execution_q, None
-        if net.recurrent:  # one LSTM pass gives both s's and s''s inputs
-            embedding, next_embedding = self._episode_embeddings(net, exe)
-            next_embedding = next_embedding.detach()
-        else:
-            embedding = net.embed(exe.states, exe.instructions, exe.steps)
-        q = net.q_values(embedding.repeat(2, 1), z).gather(1, actions[:, None]).squeeze(1)
+        inputs, next_inputs = net.transition_inputs(exe)
+        q = net.q_values(inputs.repeat(2, 1), z).gather(1, exe.actions.repeat(2)[:, None]).squeeze(1)
         with th.no_grad():
-            if next_embedding is None:
-                next_embedding = self._next_embedding(net, exe)
-            next_online = net.q_values(next_embedding.repeat(2, 1), z)
+            next_online = net.q_values(next_inputs.repeat(2, 1), z)
             z_f_target = policy.encoder_target(traj.problem_features)[owner]
             if self.execution_target_z == "own":
                 z_g_target = target_z_g() if target_z_g is not None else self._target_decoder_z(traj)
                 z_target = th.cat([z_g_target[owner], z_f_target])
             else:  # "encoder": the authors' code, no decoder pass
                 z_target = z_f_target.repeat(2, 1)
-            next_target = policy.execution_q_target.q_values(
-                self._next_embedding(policy.execution_q_target, exe).repeat(2, 1), z_target
-            )
-            best = next_online.argmax(dim=1, keepdim=True)
-            target = rewards + self.gamma * (1.0 - dones) * next_target.gather(1, best).squeeze(1)
-        td = F.mse_loss(q, target, reduction="none")
-        loss_traj, loss_prob = td[:n_exe].mean(), td[n_exe:].mean()
-
-        f_norm = f.pow(2).sum(dim=1)
-        bottleneck = self.bottleneck_loss(f)
-        # Decoder regression (Equation 4) toward stop-gradient f over every valid prefix t = 0..T.
-        n_prefix = g_all.shape[1]
-        valid = (th.arange(n_prefix, device=self.device)[None] <= traj.lengths[:, None]).float()
-        sq = (g_all - f.detach()[:, None]).pow(2).sum(dim=-1)
-        decoder_loss = (sq * valid).sum() / valid.sum()
+            target_net = policy.execution_q_target
+            next_target = target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
+        loss_traj, loss_prob = losses.execution_td_losses(
+            q, next_online, next_target, exe.rewards.repeat(2), exe.dones.repeat(2), self.gamma, len(exe.actions)
+        )
+        bottleneck = losses.bottleneck_loss(f, self.bottleneck_threshold) if self.bottleneck else f.new_zeros(())
+        decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
 
         loss = loss_traj + loss_prob + self.bottleneck_weight * bottleneck + decoder_loss
         policy.optimizer.zero_grad(set_to_none=True)
@@ -930,78 +724,27 @@ class DREAM(TrialOffPolicyAlgorithm):
             "execution_loss_prob": loss_prob.item(),
             "execution_q_mean": q.mean().item(),
             "decoder_loss": decoder_loss.item(),
-            "f_norm_sq": f_norm.mean().item(),
+            "f_norm_sq": f.pow(2).sum(dim=1).mean().item(),
             "bottleneck_loss": float(bottleneck.item()),
         }
 
-    def _next_embedding(self, net: ExecutionQNetwork, exe: ExecutionBatch) -> th.Tensor:
-        """What ``net`` feeds its body for each transition's s' ([B, D])."""
-        if net.recurrent:
-            return self._episode_embeddings(net, exe)[1]
-        return net.embed(exe.next_states, exe.instructions, exe.steps + 1)
-
-    @staticmethod
-    def _episode_embeddings(net: ExecutionQNetwork, exe: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
-        """A recurrent ``net``'s LSTM outputs for each transition's s and s' ([B, D] each).
-
-        The batch holds whole episodes (``execution_sampling="episodes"``: transition j is step
-        ``steps[j]`` of episode ``trajectories[j]``), so each episode's states s_0 .. s_L (s_L: its
-        last transition's s') are laid out as one [E, L+1] sequence, and one fused LSTM pass from
-        zeros gives h_t for s_t and h_{t+1} for s'.
-        """
-        episode, step = exe.trajectories, exe.steps
-        n_episodes, horizon = int(episode.max()) + 1, int(step.max()) + 1
-        length = th.zeros(n_episodes, dtype=step.dtype, device=step.device).scatter_reduce(
-            0, episode, step + 1, reduce="amax"
-        )
-        last = step + 1 == length[episode]  # where s' is the episode's last state, no later s holds it
-        embedding = net.embed(exe.states, exe.instructions, step)
-        last_state = net.embed(exe.next_states[last], exe.instructions[last], step[last] + 1)
-        sequence = embedding.new_zeros(n_episodes, horizon + 1, embedding.shape[1])
-        sequence = sequence.index_put((episode, step), embedding)
-        sequence = sequence.index_put((episode[last], step[last] + 1), last_state)
-        out, _ = net.recur(sequence)
-        return out[episode, step], out[episode, step + 1]
-
-    def bottleneck_loss(self, f: th.Tensor) -> th.Tensor:
-        """Equation 3 with the threshold K: mean of max(||f(T)||^2, K), so only norms above K get a
-        gradient (0 without the bottleneck)."""
-        if not self.bottleneck:
-            return f.new_zeros(())
-        return th.clamp(f.pow(2).sum(dim=-1), min=self.bottleneck_threshold).mean()
-
     def exploration_rewards(self, g: th.Tensor, f: th.Tensor, lengths: th.Tensor) -> th.Tensor:
-        """Equation 5: r_t = ||f - g(tau_:t)||^2 - ||f - g(tau_:t+1)||^2 - c, for t < T (else 0).
-
-        ``g`` [B, T+1, z] holds every prefix (prefix t has t transitions), ``f`` [B, z].
-        Returns [B, T].
-        """
-        d = (f[:, None] - g).pow(2).sum(dim=-1)  # [B, T+1]
-        r = d[:, :-1] - d[:, 1:] - self.reward_penalty
-        valid = th.arange(r.shape[1], device=r.device)[None] < lengths[:, None]
-        return r * valid
+        """Equation 5 with this model's c (:func:`sb3_dream.dream.losses.exploration_rewards`)."""
+        return losses.exploration_rewards(g, f, lengths, self.reward_penalty)
 
     def _exploration_update(self, traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor) -> Dict[str, float]:
-        """Exploration DDQN over whole trajectories (fused LSTM unroll) on relabelled rewards."""
+        """One step on the exploration DDQN over whole trajectories (fused LSTM unroll), with the
+        rewards of Equation 5 recomputed from the current f and g (``g``, ``f``)."""
         policy = self.policy
-        states, actions, prev_actions = traj.states, traj.actions, traj.prev_actions
-        prev_rewards, lengths = traj.prev_rewards, traj.lengths
-        t_max = actions.shape[1]
-        rewards = self.exploration_rewards(g, f, lengths)  # [B, T]
+        rewards = self.exploration_rewards(g, f, traj.lengths)  # [B, T]
         clock = None  # the step of each state within its exploration episode, with exploration_time_input
         if policy.exploration_time_input:
-            clock = th.arange(t_max + 1, device=self.device).expand(len(actions), -1)
-        q_all, _ = policy.exploration_q(states, prev_actions, prev_rewards, None, clock)  # [B, T+1, A]
-        q = q_all[:, :t_max].gather(2, actions[..., None]).squeeze(2)
+            clock = th.arange(traj.actions.shape[1] + 1, device=self.device).expand(len(traj.actions), -1)
+        inputs = (traj.states, traj.prev_actions, traj.prev_rewards, None, clock)
+        q_all, _ = policy.exploration_q(*inputs)  # [B, T+1, A]
         with th.no_grad():
-            q_target_all, _ = policy.exploration_q_target(states, prev_actions, prev_rewards, None, clock)
-            best = q_all[:, 1:].argmax(dim=2, keepdim=True)
-            next_q = q_target_all[:, 1:].gather(2, best).squeeze(2)  # [B, T]
-            steps = th.arange(t_max, device=self.device)[None]
-            last = steps == (lengths[:, None] - 1)  # the exploration episode ends after its last step
-            target = rewards + self.gamma * (~last).float() * next_q
-            valid = (steps < lengths[:, None]).float()
-        loss = ((q - target).pow(2) * valid).sum() / valid.sum()
+            q_target_all, _ = policy.exploration_q_target(*inputs)
+        loss, q, valid = losses.exploration_td_loss(q_all, q_target_all, traj.actions, rewards, traj.lengths, self.gamma)
         policy.exploration_optimizer.zero_grad(set_to_none=True)
         loss.backward()
         th.nn.utils.clip_grad_norm_(policy.exploration_q.parameters(), self.max_grad_norm)
@@ -1024,28 +767,3 @@ class DREAM(TrialOffPolicyAlgorithm):
             if returns:
                 self.logger.record(f"rollout/execution_return_z_{source}", safe_mean(list(returns)))
         super().dump_logs()
-
-
-class DreamBatchTrialAgent(BatchTrialAgent):
-    """DREAM at meta-test in ``n_envs`` trial envs side by side, given ``info["final_obs"]`` at
-    each exploration's end (what :func:`sb3_dream.evaluation.evaluate_meta` plays)."""
-
-    def __init__(self, model: DREAM, deterministic: bool = True) -> None:
-        self.model, self.deterministic = model, deterministic
-        self.reset(1)
-
-    def reset(self, n_envs: int) -> None:
-        self.state = self.model.new_trial_state(n_envs)
-
-    def start_trials(self, idx: np.ndarray) -> None:
-        self.state.reset(idx)
-
-    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
-        return self.model._meta_test_act(self.state, obs, infos, self.deterministic)[0]
-
-
-class DreamTrialAgent(SingleTrialAgent):
-    """:class:`DreamBatchTrialAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
-
-    def __init__(self, model: DREAM, deterministic: bool = True) -> None:
-        super().__init__(DreamBatchTrialAgent(model, deterministic))

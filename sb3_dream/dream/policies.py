@@ -26,6 +26,7 @@ from torch import nn
 from dream_envs.checks import check_non_negative, check_positive_int
 from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder, relu_mlp
 from sb3_dream.common.recurrent import DuelingHead
+from sb3_dream.dream.buffers import ExecutionBatch
 
 LSTMState = Tuple[th.Tensor, th.Tensor]
 
@@ -102,10 +103,8 @@ class ExecutionQNetwork(nn.Module):
     body. Its first layer is then a sum of one term per instruction dimension, so an unseen
     combination of familiar parts (MetaCook's held-out recipes: A seen first, B seen second, never
     together) gets a pre-activation made of trained terms, where the MLP maps it to an embedding
-    no training recipe had. Regressed onto the optimal Q, the (128, 128) network then cooked the
-    held-out recipes in 87% of their kitchens against 36% with the MLP (10 seeds each), and onto
-    its own bootstrapped targets as with a target network in 89% against 3% (3 seeds each;
-    ``examples/cook_composition_probe.py``). Measured DREAM runs with it are in docs/results.md.
+    no training recipe had (the probe in ``research/cook_composition_probe.py`` compares the two;
+    measured runs are in docs/results/metacook.md).
 
     ``recurrent_size`` > 0 (an option, the authors' final code; the paper's network is
     feed-forward) runs an LSTM of that size over the execution episode's [e(s); e(i)] and feeds its
@@ -180,13 +179,66 @@ class ExecutionQNetwork(nn.Module):
         return self.head(self.body(th.cat([embedding, z], dim=-1)))
 
     def forward(
-        self, states: th.Tensor, instructions: th.Tensor, z: th.Tensor, steps: Optional[th.Tensor] = None
-    ) -> th.Tensor:
-        """Q of single steps; a recurrent network takes them as first steps of their episodes."""
+        self,
+        states: th.Tensor,
+        instructions: th.Tensor,
+        z: th.Tensor,
+        steps: Optional[th.Tensor] = None,
+        hidden: Optional[LSTMState] = None,
+        episode_start: Optional[th.Tensor] = None,
+    ) -> Tuple[th.Tensor, Optional[LSTMState]]:
+        """Q of one step of each of B episodes (acting): ``[B, A]``, and a recurrent network's new
+        state. A recurrent network continues each episode from ``hidden`` (each ``[1, B, size]``),
+        from zeros where ``episode_start`` ([B] bool) is set (default: every row starts)."""
         embedding = self.embed(states, instructions, steps)
         if self.lstm is not None:
-            embedding = self.recur(embedding[:, None])[0][:, 0]
-        return self.q_values(embedding, z)
+            if hidden is not None and episode_start is not None:
+                keep = (~episode_start)[None, :, None].to(embedding.dtype)
+                hidden = (hidden[0] * keep, hidden[1] * keep)
+            else:
+                hidden = None
+            out, hidden = self.recur(embedding[:, None], hidden)
+            embedding = out[:, 0]
+        return self.q_values(embedding, z), hidden
+
+    def transition_inputs(self, batch: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
+        """What the body takes with z for each transition's s (with gradient) and s' (without), ``[B, D]``
+        each: what :meth:`forward` computed for them while acting, written once for the losses."""
+        if self.lstm is not None:
+            current, following = self._episode_inputs(batch)
+            return current, following.detach()
+        current = self.embed(batch.states, batch.instructions, batch.steps)
+        with th.no_grad():
+            following = self.embed(batch.next_states, batch.instructions, batch.steps + 1)
+        return current, following
+
+    def next_inputs(self, batch: ExecutionBatch) -> th.Tensor:
+        """:meth:`transition_inputs`' s' part alone (a target network's pass)."""
+        if self.lstm is not None:
+            return self._episode_inputs(batch)[1]
+        return self.embed(batch.next_states, batch.instructions, batch.steps + 1)
+
+    def _episode_inputs(self, batch: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
+        """A recurrent network's LSTM outputs for each transition's s and s' ([B, D] each).
+
+        The batch holds whole episodes (``execution_sampling="episodes"``: transition j is step
+        ``steps[j]`` of episode ``trajectories[j]``), so each episode's states s_0 .. s_L (s_L: its
+        last transition's s') are laid out as one [E, L+1] sequence, and one fused LSTM pass from
+        zeros gives h_t for s_t and h_{t+1} for s', as acting step by step did.
+        """
+        episode, step = batch.trajectories, batch.steps
+        n_episodes, horizon = int(episode.max()) + 1, int(step.max()) + 1
+        length = th.zeros(n_episodes, dtype=step.dtype, device=step.device).scatter_reduce(
+            0, episode, step + 1, reduce="amax"
+        )
+        last = step + 1 == length[episode]  # where s' is the episode's last state, no later s holds it
+        embedding = self.embed(batch.states, batch.instructions, step)
+        last_state = self.embed(batch.next_states[last], batch.instructions[last], step[last] + 1)
+        sequence = embedding.new_zeros(n_episodes, horizon + 1, embedding.shape[1])
+        sequence = sequence.index_put((episode, step), embedding)
+        sequence = sequence.index_put((episode[last], step[last] + 1), last_state)
+        out, _ = self.recur(sequence)
+        return out[episode, step], out[episode, step + 1]
 
 
 class ExplorationQNetwork(nn.Module):
@@ -270,14 +322,14 @@ class DreamPolicy(BasePolicy):
     ``execution_weight_decay`` (default 0, the paper's plain Adam) > 0 decays Q^exe's weights, and
     only those, by ``lr * execution_weight_decay`` per step, apart from the gradient (AdamW's
     decoupled weight decay): a regulariser for the composition of unseen instructions from their
-    parts, which the training split cannot otherwise reward (see the MetaCook results in docs/results.md).
+    parts, which the training split cannot otherwise reward (measured in docs/results/metacook.md).
     The encoder and the decoder are not decayed: the bottleneck already bounds f, and g regresses
     onto it.
 
     ``image_downsample`` (default 1, the paper's CNN on the full frame) > 1, for image observations
     (SignNav3D-v0): every network's CNN sees each frame average-pooled by that factor (2: 80 x 60 ->
     40 x 30; see :class:`~sb3_dream.common.embedders.ImageEmbedder`). The CNNs are almost all of an
-    update's arithmetic on SignNav3D, so 2 makes training several times faster on a CPU.
+    update's arithmetic on SignNav3D, so pooling them cuts an update's cost (docs/speed.md).
     """
 
     EXECUTION_LSTM_SIZE = 64  # the authors' LSTMCell over the execution episode

@@ -10,14 +10,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import (
-    GymEnv,
-    MaybeCallback,
-    RolloutReturn,
-    Schedule,
-    TrainFreq,
-    TrainFrequencyUnit,
-)
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import obs_as_tensor, polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
@@ -140,6 +133,12 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         "MultiInputLstmPolicy": MultiInputLstmPolicy,
         "CnnLstmPolicy": CnnLstmPolicy,
     }
+    sb3_equivalents: ClassVar[Dict[str, str]] = {
+        "exploration_fraction": "its epsilon decays over env steps: exploration_steps",
+        "optimize_memory_usage": "its sequence replay stores each observation once already",
+        "action_noise": "its actions are discrete: exploration is epsilon-greedy (exploration_initial_eps, "
+        "exploration_final_eps, exploration_steps)",
+    }
     policy: RL2DQNPolicy
     replay_buffer: SequenceReplayBuffer
     q_net: RL2QNetwork
@@ -155,7 +154,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         batch_size: int = 32,
         tau: float = 1.0,
         gamma: float = 0.99,
-        train_freq: int = 4,
+        train_freq: Union[int, Tuple[int, str]] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5000,
         exploration_initial_eps: float = 1.0,
@@ -177,7 +176,9 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         seed: Optional[int] = None,
         device: Union[th.device, str] = "auto",
         _init_setup_model: bool = True,
+        **sb3_kwargs: Any,
     ) -> None:
+        self.reject_sb3_arguments(sb3_kwargs)
         # RL2DQN(env) / RL2DQN("MetaBus-v0"): the env as the only argument, default policy
         if env is None and (
             isinstance(policy, (gym.Env, VecEnv)) or (isinstance(policy, str) and policy not in self.policy_aliases)
@@ -200,10 +201,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             raise ValueError(f"tau must be in [0, 1] (1: hard target updates), got {tau!r}")
         check_positive_int("buffer_size", buffer_size, 1)
         check_positive_int("batch_size", batch_size, 1)
-        check_positive_int("learning_starts", learning_starts, 0)
-        check_positive_int("gradient_steps", gradient_steps, 0)
         self.target_update_interval = check_positive_int("target_update_interval", target_update_interval, 1)
-        self.train_every = check_positive_int("train_freq", train_freq, 1)
         if replay_buffer_class is not None and not issubclass(replay_buffer_class, SequenceReplayBuffer):
             raise ValueError("replay_buffer_class must be a subclass of sb3_dream.common.buffers.SequenceReplayBuffer")
 
@@ -219,11 +217,11 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             env,  # type: ignore[arg-type]
             learning_rate,
             buffer_size,
-            learning_starts,
-            batch_size,
-            tau,
-            gamma,
-            train_freq=(max(1, self.train_every), "step"),
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            learning_starts=learning_starts,
+            train_freq=train_freq,
             gradient_steps=gradient_steps,
             action_noise=None,
             replay_buffer_class=replay_buffer_class or SequenceReplayBuffer,
@@ -250,7 +248,6 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         self.stored_state = bool(stored_state)
         self.td_loss = td_loss
         self.zero_exploration_rewards = bool(zero_exploration_rewards)
-        self._update_budget = 0.0
         self._lstm_states: Optional[Tuple[th.Tensor, th.Tensor]] = None
         self._last_input_states: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
@@ -282,8 +279,6 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             hidden = self.policy_kwargs.get("lstm_hidden_size", 64)
             self.replay_buffer_kwargs["lstm_state_shape"] = (layers, hidden)
         super()._setup_model()
-        # train_freq counts env steps over all envs; SB3 counts vectorised steps
-        self.train_freq = TrainFreq(max(1, self.train_every // self.n_envs), TrainFrequencyUnit.STEP)
         self.q_net = self.policy.q_net
         self.q_net_target = self.policy.q_net_target
         self._lstm_states = None
@@ -399,16 +394,9 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         """Train for ``total_timesteps`` env steps (over all envs); ``log_interval`` counts trials."""
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
 
-    def _updates_due(self, rollout: RolloutReturn) -> int:
-        """``gradient_steps`` updates per ``train_every`` env steps, whatever the number of envs."""
-        if self.num_timesteps <= self.learning_starts or self.replay_buffer.size() == 0:
-            return 0
-        self._update_budget += rollout.episode_timesteps * self.gradient_steps / self.train_every
-        n_updates = int(self._update_budget)
-        self._update_budget -= n_updates
-        return n_updates
-
     def train(self, gradient_steps: int, batch_size: int = 32) -> None:
+        if self.replay_buffer.size() == 0:
+            return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)  # logs train/learning_rate
         losses, q_means = [], []

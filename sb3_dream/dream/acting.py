@@ -1,0 +1,234 @@
+"""DREAM acting in trials: what it remembers of each env's current trial, and one batched step.
+
+During a trial's exploration episode the exploration policy Q^exp acts on its own history (an LSTM
+state) and the trajectory tau^exp is recorded; when the episode ends, z is set: g(tau^exp), or
+during training on alternate trials z ~ F(z | T) (Algorithm 1, line 11). The execution policy
+Q^exe(s, i, z) then acts on it. :func:`act` does one step of ``n`` envs with one forward per
+policy; :class:`DreamBatchTrialAgent` plays a model at meta-test, reading the exploration episode's
+last state from ``info["final_obs"]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Dict, Sequence, Tuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+
+from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, SingleTrialAgent
+from sb3_dream.dream.policies import DreamPolicy
+
+if TYPE_CHECKING:
+    from sb3_dream.dream.dream import DREAM
+
+# The observation keys acting reads (the trial contract, see dream_envs.TrialEnv).
+REQUIRED_KEYS = ("obs", "instruction", "phase", "prev_action", "prev_reward")
+
+
+@dataclass
+class TrialState:
+    """What DREAM remembers about the current trial of each of ``n`` envs while acting."""
+
+    hidden: Tuple[th.Tensor, th.Tensor]  # exploration LSTM state, each [1, n, hidden]
+    states: np.ndarray  # [n, H+1, ...] exploration states s_0 .. s_T
+    actions: np.ndarray  # [n, H]
+    prev_actions: np.ndarray  # [n, H+1]
+    prev_rewards: np.ndarray  # [n, H+1]
+    length: np.ndarray  # [n] exploration steps taken
+    z: np.ndarray  # [n, z_dim] the trial's z for execution (valid where z_ready)
+    z_ready: np.ndarray  # [n] bool
+    execution_step: np.ndarray  # [n] the step within the current execution episode
+    # execution LSTM state, each [1, n, size] (size 0 for the paper's feed-forward execution Q)
+    execution_hidden: Tuple[th.Tensor, th.Tensor]
+
+    @classmethod
+    def zeros(cls, policy: DreamPolicy, n_envs: int, horizon: int, state_dtype: np.dtype) -> "TrialState":
+        """The state of ``n_envs`` trials that have not started."""
+        zeros = lambda size: th.zeros(1, n_envs, size, device=policy.device)  # noqa: E731
+        hidden_size, execution_size = policy.exploration_q.hidden_size, policy.execution_q.recurrent_size
+        return cls(
+            hidden=(zeros(hidden_size), zeros(hidden_size)),
+            states=np.zeros((n_envs, horizon + 1, *policy.observation_space["obs"].shape), dtype=state_dtype),
+            actions=np.zeros((n_envs, horizon), dtype=np.int64),
+            prev_actions=np.zeros((n_envs, horizon + 1), dtype=np.int64),
+            prev_rewards=np.zeros((n_envs, horizon + 1), dtype=np.float32),
+            length=np.zeros(n_envs, dtype=np.int64),
+            z=np.zeros((n_envs, policy.z_dim), dtype=np.float32),
+            z_ready=np.zeros(n_envs, dtype=bool),
+            execution_step=np.zeros(n_envs, dtype=np.int64),
+            execution_hidden=(zeros(execution_size), zeros(execution_size)),
+        )
+
+    def reset(self, idx: np.ndarray) -> None:
+        """Forget the trials of envs ``idx``: a new trial starts there."""
+        for hidden in (*self.hidden, *self.execution_hidden):
+            hidden[:, idx] = 0.0
+        self.length[idx] = 0
+        self.z_ready[idx] = False
+        self.execution_step[idx] = 0
+        self.prev_actions[idx] = 0
+        self.prev_rewards[idx] = 0.0
+
+    def as_tuple(self) -> Tuple[np.ndarray, ...]:
+        """The state as numpy arrays (``predict``'s ``state``)."""
+        h, c, exe_h, exe_c = (t.detach().cpu().numpy() for t in (*self.hidden, *self.execution_hidden))
+        rest = (self.states, self.actions, self.prev_actions, self.prev_rewards, self.length)
+        return (h, c, *rest, self.z, self.z_ready, self.execution_step, exe_h, exe_c)
+
+    @classmethod
+    def from_tuple(cls, state: Tuple[np.ndarray, ...], device: th.device) -> "TrialState":
+        h, c, *rest, exe_h, exe_c = state
+        tensor = lambda a: th.as_tensor(a, device=device).clone()  # noqa: E731
+        return cls((tensor(h), tensor(c)), *(np.array(a, copy=True) for a in rest), (tensor(exe_h), tensor(exe_c)))
+
+
+def model_states(states: np.ndarray, state_space: spaces.Space) -> np.ndarray:
+    """States in the model's layout: SB3 stores images channel-first (``VecTransposeImage``),
+    while a raw env and ``info["final_obs"]`` give them channel-last."""
+    shape = state_space.shape
+    states = np.asarray(states)
+    if len(shape) == 3 and states.shape[-3:] != shape and states.shape[-3:] == (shape[1], shape[2], shape[0]):
+        return np.moveaxis(states, -1, -3)
+    return states
+
+
+def batch_observation(observation: Dict[str, Any], policy: DreamPolicy) -> Tuple[Dict[str, np.ndarray], bool]:
+    """``observation`` of one env or of a batch, as a batch, and whether it was a batch."""
+    needs_start = policy.execution_time_input or policy.execution_recurrent
+    required = REQUIRED_KEYS + (("episode_start",) if needs_start else ())
+    if not isinstance(observation, dict) or any(k not in observation for k in required):
+        raise ValueError(f"observation must be a dict with the trial keys {required}")
+    state_space = policy.observation_space["obs"]
+    obs = {k: np.asarray(v) for k, v in observation.items()}
+    obs["obs"] = model_states(obs["obs"], state_space)
+    if obs["obs"].shape != state_space.shape:
+        return obs, True
+    return {k: v[None] for k, v in obs.items()}, False
+
+
+def epsilon_greedy(greedy: np.ndarray, eps: float, n_actions: int, rng: np.random.Generator) -> np.ndarray:
+    """Each action replaced by a uniformly random one with probability ``eps``."""
+    if eps <= 0:
+        return greedy
+    explore = rng.random(len(greedy)) < eps
+    return np.where(explore, rng.integers(n_actions, size=len(greedy)), greedy)
+
+
+@th.no_grad()
+def decode(policy: DreamPolicy, state: TrialState, idx: np.ndarray, n_transitions: np.ndarray) -> np.ndarray:
+    """g(tau_:n) for envs ``idx`` from their recorded exploration trajectories (one fused pass)."""
+    tensor = lambda a: th.as_tensor(np.asarray(a), device=policy.device)  # noqa: E731
+    t = int(max(1, n_transitions.max()))
+    g = policy.decoder(tensor(state.states[idx, : t + 1]), tensor(state.actions[idx, :t]), tensor(n_transitions))
+    return g.cpu().numpy()  # [k, z]
+
+
+@th.no_grad()
+def act(
+    policy: DreamPolicy,
+    obs: Dict[str, np.ndarray],
+    state: TrialState,
+    exploration_eps: float,
+    execution_eps: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Actions of ``n`` envs (a batch from :func:`batch_observation`): one forward per policy.
+    Records the exploration steps in ``state``."""
+    tensor = lambda a: th.as_tensor(np.asarray(a), device=policy.device)  # noqa: E731
+    n = len(obs["phase"])
+    phase = np.asarray(obs["phase"]).reshape(n)
+    actions = np.zeros(n, dtype=np.int64)
+    n_actions, horizon = int(policy.action_space.n), state.actions.shape[1]
+
+    explore = np.flatnonzero(phase == EXPLORATION)
+    if len(explore):
+        t = state.length[explore]
+        state.states[explore, t] = obs["obs"][explore]
+        state.prev_actions[explore, t] = np.asarray(obs["prev_action"]).reshape(n)[explore]
+        state.prev_rewards[explore, t] = np.asarray(obs["prev_reward"]).reshape(n)[explore]
+        hidden = (state.hidden[0][:, explore], state.hidden[1][:, explore])
+        q, (h, c) = policy.exploration_q(
+            tensor(obs["obs"][explore])[:, None],
+            tensor(state.prev_actions[explore, t])[:, None],
+            tensor(state.prev_rewards[explore, t])[:, None, None],
+            hidden,
+            tensor(t)[:, None] if policy.exploration_time_input else None,
+        )
+        state.hidden[0][:, explore], state.hidden[1][:, explore] = h, c
+        chosen = epsilon_greedy(q[:, 0].argmax(dim=-1).cpu().numpy(), exploration_eps, n_actions, rng)
+        actions[explore] = chosen
+        state.actions[explore, np.minimum(t, horizon - 1)] = chosen
+        state.length[explore] = np.minimum(t + 1, horizon)
+
+    execute = np.flatnonzero(phase == EXECUTION)
+    if len(execute):
+        missing = execute[~state.z_ready[execute]]
+        if len(missing):
+            # The last exploration state is unknown here (only info["final_obs"] holds it):
+            # use g of the trajectory without its last transition.
+            state.z[missing] = decode(policy, state, missing, np.maximum(state.length[missing] - 1, 0))
+            state.z_ready[missing] = True
+        first = None
+        if "episode_start" in obs:  # the step within the execution episode
+            first = np.asarray(obs["episode_start"]).reshape(n)[execute].astype(bool)
+            state.execution_step[execute] = np.where(first, 0, state.execution_step[execute] + 1)
+        net = policy.execution_q
+        hidden = None
+        if net.recurrent:  # batch_observation requires episode_start for a recurrent network
+            hidden = (state.execution_hidden[0][:, execute], state.execution_hidden[1][:, execute])
+        q, hidden = net(
+            tensor(obs["obs"][execute]),
+            tensor(obs["instruction"][execute]),
+            tensor(state.z[execute]),
+            tensor(state.execution_step[execute]) if policy.execution_time_input else None,
+            hidden,
+            None if first is None else tensor(first),
+        )
+        if hidden is not None:
+            state.execution_hidden[0][:, execute], state.execution_hidden[1][:, execute] = hidden
+        actions[execute] = epsilon_greedy(q.argmax(dim=-1).cpu().numpy(), execution_eps, n_actions, rng)
+    return actions
+
+
+class DreamBatchTrialAgent(BatchTrialAgent):
+    """DREAM at meta-test in ``n_envs`` trial envs side by side, given ``info["final_obs"]`` at
+    each exploration's end (what :func:`sb3_dream.evaluation.evaluate_meta` plays): z = g(tau^exp)
+    of the whole trajectory."""
+
+    def __init__(self, model: "DREAM", deterministic: bool = True) -> None:
+        self.model, self.deterministic = model, deterministic
+        self.reset(1)
+
+    def reset(self, n_envs: int) -> None:
+        self.state = self.model.new_trial_state(n_envs)
+
+    def start_trials(self, idx: np.ndarray) -> None:
+        self.state.reset(idx)
+
+    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
+        return self.step(obs, infos)[0]
+
+    def step(self, observation: Dict[str, Any], infos: Sequence[Dict[str, Any]]) -> Tuple[np.ndarray, np.ndarray]:
+        """The actions, and the envs whose exploration episode ``infos`` say just ended (their z is
+        set first, with ``info["final_obs"]`` as the trajectory's last state)."""
+        model = self.model
+        model.policy.set_training_mode(False)
+        obs, _ = batch_observation(observation, model.policy)
+        explored = np.array(
+            [k for k, info in enumerate(infos) if info.get("episode_end") and info.get("episode_phase") == EXPLORATION],
+            dtype=np.int64,
+        )
+        if len(explored):
+            final_obs = np.stack([np.asarray(infos[k]["final_obs"]) for k in explored])
+            model.end_exploration(self.state, explored, final_obs)
+        eps = (0.0, 0.0) if self.deterministic else (model.exploration_epsilon, model.execution_epsilon)
+        return act(model.policy, obs, self.state, *eps, model._rng), explored
+
+
+class DreamTrialAgent(SingleTrialAgent):
+    """:class:`DreamBatchTrialAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
+
+    def __init__(self, model: "DREAM", deterministic: bool = True) -> None:
+        super().__init__(DreamBatchTrialAgent(model, deterministic))
