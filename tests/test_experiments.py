@@ -14,6 +14,7 @@ import pytest
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dream import experiments
+from sb3_dream.evaluation import CURVE_COLUMNS
 from sb3_dream.experiments import (
     EnvSpec,
     Run,
@@ -90,6 +91,51 @@ def test_models_of_each_algorithm_and_preset():
     assert plan_runs(["dream", "rl2dqn"], [EnvSpec("A-v0"), EnvSpec("B-v0")], [0, 1])[:3] == [
         Run("dream", EnvSpec("A-v0"), 0), Run("dream", EnvSpec("A-v0"), 1), Run("rl2dqn", EnvSpec("A-v0"), 0)
     ]  # fmt: skip
+
+
+def test_an_algorithm_is_added_by_registering_its_spec(monkeypatch):
+    from sb3_dream.dream import DREAM
+    from sb3_dream.experiments import ALGORITHMS, AlgorithmSpec, register_algorithm
+
+    spec = AlgorithmSpec(
+        "dream_sync100", load_class=lambda: DREAM, presets={"paper": {"target_update_interval": 100}},
+        overrides="dream_kwargs",
+    )  # fmt: skip
+    monkeypatch.setitem(ALGORITHMS, spec.name, spec)  # as register_algorithm does, undone after the test
+    assert register_algorithm(spec) is spec  # the same spec again: nothing changes
+    with pytest.raises(ValueError, match="an algorithm named 'dream_sync100' is already registered"):
+        register_algorithm(dataclasses.replace(spec, presets={}))
+    (run,) = plan_runs([spec.name], [EnvSpec("MetaBandit-v0")], [0])
+    small = RunConfig(dream_kwargs=(("buffer_size", 50), ("execution_buffer_size", 100)))
+    model = make_model(run.algo, "MetaBandit-v0", small, seed=0)
+    assert (model.target_update_interval, model.buffer_size) == (100, 50)  # its preset, then the overrides
+    with pytest.raises(ValueError, match="preset='fast' is not defined for dream_sync100; its presets: 'paper'"):
+        make_model(spec.name, "MetaBandit-v0", RunConfig(preset="fast"), seed=0)
+    with pytest.raises(ValueError, match="must not set bottleneck: choose the algorithm dream or dream_no_bottleneck"):
+        RunConfig(dream_kwargs=(("bottleneck", True),))
+
+
+def test_runs_go_to_the_backend_given(tmp_path, capsys):
+    class Recording:
+        """A backend that runs nothing and records what it was given."""
+
+        def __init__(self):
+            self.runs = []
+
+        def slots(self, n_runs):
+            return n_runs
+
+        def run(self, runs, config, out):
+            self.runs += runs
+            for run in runs:
+                yield {"run": run, "status": "done"}
+
+    runs, backend = plan_runs(["dream", "rl2dqn"], [EnvSpec("MetaBandit-v0")], [0]), Recording()
+    records = experiments.run_experiments(runs, RunConfig(), tmp_path, backend=backend)
+    assert backend.runs == runs and [r["status"] for r in records] == ["done", "done"]
+    assert "running 2 run(s), 2 at a time" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="give jobs or backend, not both"):
+        experiments.run_experiments(runs, RunConfig(), tmp_path, jobs=2, backend=backend)
 
 
 def test_tiny_experiment_runs_in_parallel_then_resumes(tmp_path, capsys):
@@ -378,7 +424,7 @@ def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluatio
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(path, "w", newline="") as f:
             writer = csv.writer(f)
-            writer.writerow(experiments.CURVE_COLUMNS)
+            writer.writerow(CURVE_COLUMNS)
             writer.writerows([[step, 1.0, value, 0.0, 5.0] for step, value in zip((0, 50, 90, 100), values)])
     runs = plan_runs(["dream"], [env], [0, 1])
     (row,) = experiments.summarize(runs, RunConfig(), tmp_path)

@@ -1,4 +1,5 @@
-"""sb3_dream.zoo: rl-zoo3's tables, the packaged hyperparameters, the CLI's defaults, train/enjoy/optimize."""
+"""sb3_dream.zoo: rl-zoo3's tables, the packaged hyperparameters (checked against sb3_dream.presets), the
+CLI's defaults, train/enjoy/optimize."""
 
 from __future__ import annotations
 
@@ -39,6 +40,8 @@ NOT_HYPERPARAMETERS = {
 # The paper's smaller buffers for the 3D env (Appendix B.4) and RL2DQN's image policy there.
 PAPER_3D = {"dream": {"buffer_size": 10_000, "execution_buffer_size": 60_000}, "rl2_dqn": {"buffer_size": 10_000}}
 POLICIES = {"dream": {}, "rl2_dqn": {"SignNav3D-v0": "CnnLstmPolicy"}}
+# The one source of named presets, per zoo algorithm: the packaged files must agree with it.
+ZOO_PRESETS = {"dream": PRESETS, "rl2_dqn": RL2DQN_PRESETS}
 TINY = {
     "dream": [
         "exploration_learning_starts:5",
@@ -66,7 +69,7 @@ def test_register_fills_rl_zoo3_tables():
 
 
 @pytest.mark.parametrize("algo", ZOO_ALGOS)
-def test_packaged_hyperparameters_are_the_papers_defaults_for_every_env(algo):
+def test_packaged_hyperparameters_are_the_paper_preset_for_every_env(algo):
     cls = algorithms()[algo]
     defaults = {
         name: p.default
@@ -81,17 +84,15 @@ def test_packaged_hyperparameters_are_the_papers_defaults_for_every_env(algo):
         assert params["policy"] == POLICIES[algo].get(env_id, default_policy), env_id
         hyper = {k: v for k, v in params.items() if k not in ("n_timesteps", "n_envs", "policy")}
         assert set(hyper) == set(defaults), f"{algo} {env_id}: listed {sorted(hyper)} vs constructor {sorted(defaults)}"
-        expected = {**defaults, **(PAPER_3D[algo] if env_id == "SignNav3D-v0" else {})}
+        expected = {**defaults, **ZOO_PRESETS[algo]["paper"], **(PAPER_3D[algo] if env_id == "SignNav3D-v0" else {})}
         assert hyper == expected, env_id
 
 
-# The schedules of the README's measured runs: the runner's --preset fast for each algorithm.
-FAST = {"dream": PRESETS["fast"], "rl2_dqn": RL2DQN_PRESETS["fast"]}
 ZOO_KEYS = {"n_timesteps", "n_envs", "policy", "policy_kwargs"}
 
 
 @pytest.mark.parametrize("algo", ZOO_ALGOS)
-def test_measured_settings_are_the_runners_fast_schedules_and_valid_arguments(algo):
+def test_measured_settings_are_the_fast_preset_and_valid_arguments(algo):
     cls = algorithms()[algo]
     arguments = set(inspect.signature(cls.__init__).parameters)
     config = yaml.safe_load(hyperparams_path(algo, "measured").read_text())
@@ -99,7 +100,8 @@ def test_measured_settings_are_the_runners_fast_schedules_and_valid_arguments(al
     for env_id in ("MetaBus-v0", "MetaCook-v0"):  # the envs of the README's measured runs
         params = config[env_id]
         assert params["n_envs"] == 4 and params["n_timesteps"] >= 6e5
-        assert {k: params[k] for k in FAST[algo]} == FAST[algo], env_id
+        fast = ZOO_PRESETS[algo]["fast"]  # the schedules of the README's measured runs (the runner's --preset fast)
+        assert {k: params[k] for k in fast} == fast, env_id
         hyper = {k: v for k, v in params.items() if k not in ZOO_KEYS}
         assert set(hyper) <= arguments, env_id
         policy_kwargs = eval(params.get("policy_kwargs", "dict()"))  # as rl-zoo3 reads it
@@ -206,3 +208,15 @@ def test_zoo_optimize_runs_trials_with_the_dream_sampler(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "Number of finished trials:  2" in out and "exploration_learning_starts" in out
     assert list((logs / "dream").glob("report_MetaBandit-v0_2-trials-100-*.csv"))
+
+
+def test_zoo_trains_dream_with_sb3s_learning_starts(tmp_path, capsys):
+    """``-params learning_starts:N``, SB3's usual way to set when updates begin, reaches DREAM."""
+    logs = tmp_path / "logs"
+    main(
+        ["train", "--algo", "dream", "--env", "MetaBus-v0", "-n", "120", "--seed", "0", "--num-threads", "1",
+         "-f", str(logs), "-params", *TINY["dream"], "learning_starts:50"]
+    )  # fmt: skip
+    assert "('learning_starts', 50)" in capsys.readouterr().out
+    model = DREAM.load(logs / "dream" / "MetaBus-v0_1" / "MetaBus-v0.zip")
+    assert model.learning_starts == 50 and model.num_timesteps == 120

@@ -13,7 +13,7 @@ zoo name     algorithm                             default hyperparameter file
 ===========  ====================================  ================================
 
 Each also ships ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings measured``): the
-settings of the README's measured runs, with what they reached.
+settings of the README's measured runs (their results: ``docs/results/README.md``).
 
 The ``sb3-dream-zoo`` command (:mod:`sb3_dream.zoo.cli`) registers them, imports
 :mod:`dream_envs` (so ``--env MetaBus-v0`` resolves) and runs rl-zoo3's own ``train``,
@@ -52,8 +52,7 @@ def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
     """The packaged hyperparameter file of ``algo`` ("dream" or "rl2_dqn"), usable as ``--conf-file``.
 
     ``settings="paper"``: the paper's values (the constructors' defaults); ``"measured"``: the
-    settings of the README's measured runs (the ``fast`` schedules and DREAM's options), with what
-    they reached in the file's header.
+    settings of the README's measured runs (the ``fast`` schedules and DREAM's options).
     """
     if algo not in ZOO_ALGOS:
         raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")

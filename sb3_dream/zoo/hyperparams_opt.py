@@ -5,10 +5,9 @@ returns constructor arguments that override the hyperparameter file. Optuna para
 after the constructor arguments, so the converters (rl-zoo3's ``HYPERPARAMS_CONVERTER``, used by
 ``--storage ... --study-name ... --trial-id``) only copy them.
 
-The ranges centre on the paper's values (Appendix B.4) and reach the budgets where the grid worlds
-learn in an hour or less on a CPU (see :mod:`sb3_dream.presets`): learning starts, epsilon
-decay and target syncs are the values that matter most there. Networks, losses and the update
-ratio (one update per 4 env steps) are not searched.
+The ranges centre on the paper's values (Appendix B.4) and reach the faster schedules of the
+``fast`` preset (:mod:`sb3_dream.presets`): learning starts, epsilon decay and target syncs.
+Networks, losses and the update ratio (one update per 4 env steps) are not searched.
 """
 
 from __future__ import annotations

@@ -1,0 +1,69 @@
+"""The experiment runner: algorithms x envs x seeds -> learning curves, a summary table and figures.
+
+``python -m sb3_dream.experiments --help`` describes the command (:mod:`sb3_dream.experiments.cli`).
+The package, by concept:
+
+* :mod:`~sb3_dream.experiments.config`: env specs, the settings shared by the runs, each run's files;
+* :mod:`~sb3_dream.experiments.algorithms`: the algorithms the runner trains, one spec each;
+* :mod:`~sb3_dream.experiments.training`: one run (train, evaluate, record);
+* :mod:`~sb3_dream.experiments.checkpoints`: resuming, extending and starting from other runs;
+* :mod:`~sb3_dream.experiments.backends`: where runs execute (:class:`LocalPool`: processes here);
+* :mod:`~sb3_dream.experiments.runner`: which runs are due, handed to a backend;
+* :mod:`~sb3_dream.experiments.report`: summaries, the oracle's return, the figure.
+"""
+
+from sb3_dream.experiments.algorithms import (
+    ALGORITHMS,
+    AlgorithmSpec,
+    algorithm_class,
+    algorithm_kwargs,
+    load_with_overrides,
+    make_model,
+    register_algorithm,
+)
+from sb3_dream.experiments.backends import Backend, LocalPool
+from sb3_dream.experiments.checkpoints import Checkpointer, init_checkpoint
+from sb3_dream.experiments.cli import build_parser, main
+from sb3_dream.experiments.config import EnvSpec, Run, RunConfig, parse_kwargs
+from sb3_dream.experiments.report import (
+    SUMMARY_COLUMNS,
+    finished_runs,
+    load_curve,
+    oracle_return,
+    plot_curves,
+    summarize,
+    write_summary,
+)
+from sb3_dream.experiments.runner import check_eval_splits, plan_runs, run_experiments
+from sb3_dream.experiments.training import run_one
+
+__all__ = [
+    "ALGORITHMS",
+    "AlgorithmSpec",
+    "Backend",
+    "Checkpointer",
+    "EnvSpec",
+    "LocalPool",
+    "Run",
+    "RunConfig",
+    "SUMMARY_COLUMNS",
+    "algorithm_class",
+    "algorithm_kwargs",
+    "build_parser",
+    "check_eval_splits",
+    "finished_runs",
+    "init_checkpoint",
+    "load_curve",
+    "load_with_overrides",
+    "main",
+    "make_model",
+    "oracle_return",
+    "parse_kwargs",
+    "plan_runs",
+    "plot_curves",
+    "register_algorithm",
+    "run_experiments",
+    "run_one",
+    "summarize",
+    "write_summary",
+]

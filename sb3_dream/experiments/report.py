@@ -1,0 +1,210 @@
+"""Reports of an experiment: its finished runs, the oracle's return, the summary table, the figure."""
+
+from __future__ import annotations
+
+import csv
+import json
+import pathlib
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from dream_envs import all_splits
+from sb3_dream.evaluation import CURVE_COLUMNS
+from sb3_dream.experiments.algorithms import ALGORITHMS
+from sb3_dream.experiments.config import EnvSpec, Run, RunConfig
+
+
+def finished_runs(out: pathlib.Path) -> List[Run]:
+    """Every finished run under ``out``, whichever command made it, from the runs' JSON records
+    (sorted by env folder, algorithm and seed)."""
+    found = []
+    for path in sorted(pathlib.Path(out).glob("*/*.json")):
+        try:
+            info = json.loads(path.read_text())
+            # JSON turned tuples into lists; EnvSpec must stay hashable.
+            kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in info["env_kwargs"].items()}
+            run = Run(info["algo"], EnvSpec(info["env"], tuple(sorted(kwargs.items()))), int(info["seed"]))
+        except (ValueError, KeyError, TypeError, AttributeError):
+            continue  # not a run's record (an oracle's, say)
+        if run.info_path(out) == path and any(run.curve_path(out, split).exists() for split in all_splits()):
+            found.append(run)
+    order = {algo: k for k, algo in enumerate(ALGORITHMS)}
+    return sorted(found, key=lambda r: (r.env.tag, order.get(r.algo, len(order)), r.seed))
+
+
+def with_finished_runs(runs: Sequence[Run], out: pathlib.Path) -> List[Run]:
+    """``runs`` followed by the other finished runs under ``out`` (one per set of files)."""
+    merged: Dict[Tuple[str, str, int], Run] = {}
+    for run in [*runs, *finished_runs(out)]:
+        merged.setdefault((run.env.tag, run.algo, run.seed), run)
+    return list(merged.values())
+
+
+def load_curve(path: pathlib.Path) -> Dict[str, np.ndarray]:
+    """A learning-curve CSV as arrays, one per column."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{path} holds no evaluation")
+    return {k: np.array([float(r[k]) for r in rows]) for k in CURVE_COLUMNS}
+
+
+def oracle_return(
+    env: EnvSpec, split: str, n_trials: int, out: pathlib.Path, exhaustive: bool = False
+) -> Optional[float]:
+    """Mean execution return of the env's scripted optimal agent on ``split`` (cached as JSON;
+    ``exhaustive``: over every (problem, instruction) pair, see :func:`evaluate_meta`)."""
+    import gymnasium as gym
+
+    import dream_envs
+    from sb3_dream.evaluation import evaluate_meta
+
+    path = out / env.tag / f"oracle_{split}{'_exhaustive' if exhaustive else ''}.json"
+    if path.exists():
+        return float(json.loads(path.read_text())["mean"])
+    try:
+        made = gym.make(env.env_id, split=split, n_exec_episodes=env.n_exec_episodes, **env.eval_kwargs)
+        result = evaluate_meta(
+            dream_envs.make_oracle(made),
+            made,
+            n_trials=n_trials,
+            split=split,
+            n_exec_episodes=env.n_exec_episodes,
+            exhaustive=exhaustive,
+        )
+        made.close()
+    except (AttributeError, NotImplementedError):  # an env without an oracle
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = {"mean": result.mean, "ci": result.ci, "n_trials": result.n_trials}
+    path.write_text(json.dumps({**record, "exhaustive": True} if exhaustive else record))
+    return result.mean
+
+
+def summarize(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+) -> List[Dict[str, Any]]:
+    """One row per (env, algo, split): the final return's mean and std over the finished seeds
+    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock.
+
+    ``last_tenth_mean`` averages each seed's evaluations over the last tenth of its env steps, then
+    the seeds: single greedy evaluations of a value-based agent swing, and one of them can
+    misrepresent where a run ended."""
+    rows = []
+    groups: Dict[Tuple[EnvSpec, str], List[Run]] = {}
+    for run in runs:
+        groups.setdefault((run.env, run.algo), []).append(run)
+    for (env, algo), group in groups.items():
+        for split in config.eval_splits:
+            curves = [load_curve(r.curve_path(out, split)) for r in group if r.curve_path(out, split).exists()]
+            row: Dict[str, Any] = {"env": env.label, "algo": algo, "split": split, "seeds": len(curves)}
+            if curves:
+                finals = np.array([c["mean"][-1] for c in curves])
+                last_tenth = [c["mean"][c["env_steps"] >= 0.9 * c["env_steps"][-1]].mean() for c in curves]
+                row.update(
+                    final_return_mean=float(finals.mean()),
+                    final_return_std=float(finals.std()),
+                    last_tenth_mean=float(np.mean(last_tenth)),
+                    env_steps=int(np.mean([c["env_steps"][-1] for c in curves])),
+                    wall_clock_s=float(np.mean([c["wall_clock_s"][-1] for c in curves])),
+                )
+            if oracles and (env.tag, split) in oracles:
+                row["oracle_return"] = oracles[(env.tag, split)]
+            rows.append(row)
+    return rows
+
+
+SUMMARY_COLUMNS = (
+    "env",
+    "algo",
+    "split",
+    "seeds",
+    "final_return_mean",
+    "final_return_std",
+    "last_tenth_mean",
+    "env_steps",
+    "wall_clock_s",
+    "oracle_return",
+)
+
+
+def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
+    """Write ``summary.csv`` and ``summary.md`` under ``out``; return the markdown table."""
+    with open(out / "summary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: row.get(k, "") for k in SUMMARY_COLUMNS})
+    lines = [
+        "| env | algo | split | seeds | final return (mean ± std) | mean over the last tenth | optimal | env steps "
+        "| wall-clock |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        ret = f"{row['final_return_mean']:.3f} ± {row['final_return_std']:.3f}" if row["seeds"] else "-"
+        last_tenth = f"{row['last_tenth_mean']:.3f}" if row["seeds"] else "-"
+        optimal = f"{row['oracle_return']:.3f}" if "oracle_return" in row else "-"
+        steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
+        clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
+        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, steps, clock]
+        lines.append("| " + " | ".join(cells) + " |")
+    table = "\n".join(lines) + "\n"
+    (out / "summary.md").write_text(table)
+    return table
+
+
+def _format_seconds(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def plot_curves(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+) -> pathlib.Path:
+    """``curves.png``: execution return vs env steps, mean +- std over seeds, one panel per env and
+    split, with the optimal return dashed (the paper's Figures 5 and 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = list(dict.fromkeys(run.env for run in runs))
+    algos = list(dict.fromkeys(run.algo for run in runs))
+    panels = [(env, split) for env in envs for split in config.eval_splits]
+    n_cols = min(len(panels), 3)
+    n_rows = -(-len(panels) // n_cols)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(5 * n_cols, 3.6 * n_rows), squeeze=False)
+    for ax, (env, split) in zip(axes.flat, panels):
+        for k, algo in enumerate(algos):
+            paths = [r.curve_path(out, split) for r in runs if r.env == env and r.algo == algo]
+            curves = [load_curve(p) for p in paths if p.exists()]
+            if not curves:
+                continue
+            n = min(len(c["mean"]) for c in curves)
+            steps = curves[0]["env_steps"][:n]
+            values = np.stack([c["mean"][:n] for c in curves])
+            mean, std = values.mean(axis=0), values.std(axis=0)
+            color = f"C{k}"
+            ax.plot(steps, mean, color=color, label=f"{algo} ({len(curves)} seed{'s' if len(curves) > 1 else ''})")
+            ax.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
+        if oracles and (env.tag, split) in oracles:
+            ax.axhline(oracles[(env.tag, split)], color="k", ls="--", lw=1, label="optimal")
+        ax.set_title(f"{env.label}" + ("" if split == "test" else f", {split} split"))
+        ax.set_xlabel("env steps")
+        ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="best", fontsize="small")
+        else:
+            ax.text(0.5, 0.5, "no finished run", ha="center", va="center", transform=ax.transAxes)
+    for ax in list(axes.flat)[len(panels):]:  # fmt: skip
+        ax.axis("off")
+    fig.tight_layout()
+    path = out / "curves.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
