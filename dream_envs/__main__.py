@@ -1,7 +1,8 @@
 """``python -m dream_envs``: play the optimal scripted agent and a random agent on every env.
 
 Prints, per env and split, the mean execution return (with a 95% confidence half-width) of each agent
-and the oracle's exploration-episode length. Example::
+and the oracle's exploration-episode length; an env that cannot be built here (SignNav3D-v0 without
+OpenGL) is listed as unavailable, with the reason. Example::
 
     python -m dream_envs --trials 100
     python -m dream_envs --env MetaCook-v0 --split test --trials 200
@@ -11,12 +12,14 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Optional
 
 import gymnasium as gym
 import numpy as np
 
 import dream_envs
 from dream_envs import RandomAgent, play_trial
+from dream_envs.sign_nav import opengl_available
 
 # Env IDs with the constructor kwargs of each variant worth listing.
 DEFAULT_VARIANTS = [
@@ -26,6 +29,14 @@ DEFAULT_VARIANTS = [
     ("SignNav3D-v0", {}),
     ("MetaBandit-v0", {}),
 ]
+
+
+def unavailable(env_id: str) -> Optional[str]:
+    """Why ``env_id`` cannot be built on this machine, or None if it can."""
+    if env_id == "SignNav3D-v0":
+        available, reason = opengl_available()
+        return None if available else reason
+    return None
 
 
 def mean_ci(values: list[float]) -> tuple[float, float]:
@@ -68,6 +79,10 @@ def main() -> None:
     print(f"{'env':<28}{'split':<18}{'oracle return':>18}{'random return':>18}{'oracle explore len':>20}")
     for env_id, kwargs in rows:
         name = env_id + "".join(f" {k}={v}" for k, v in kwargs.items())
+        reason = unavailable(env_id)
+        if reason is not None:
+            print(f"{name:<28}{args.split:<18}unavailable: {reason}")
+            continue
         r = evaluate(env_id, kwargs, args.split, args.trials, args.seed)
         (om, oh), (rm, rh) = r["oracle"], r["random"]
         print(f"{name:<28}{args.split:<18}{om:>11.3f} ±{oh:5.3f}{rm:>11.3f} ±{rh:5.3f}{r['explore_len']:>20.1f}")

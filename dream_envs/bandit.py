@@ -10,8 +10,8 @@ from gymnasium import spaces
 
 from dream_envs.agents import ScriptedAgent
 from dream_envs.checks import check_positive_int
-from dream_envs.trial_env import EXPLORATION, TrialEnv
 from dream_envs.rendering import COLORS, GridCanvas
+from dream_envs.trial_env import EXPLORATION, TrialEnv
 
 
 class MetaBanditEnv(TrialEnv):

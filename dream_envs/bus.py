@@ -11,9 +11,9 @@ from gymnasium import spaces
 
 from dream_envs.agents import ScriptedAgent
 from dream_envs.checks import check_choice
-from dream_envs.play import play_trials
-from dream_envs.trial_env import EXPLORATION, TrialEnv
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
+from dream_envs.report import TrialRecorder, record_trials, unwrap
+from dream_envs.trial_env import EXPLORATION, TrialEnv
 
 Cell = Tuple[int, int]
 
@@ -363,30 +363,39 @@ class BusExplorationReport:
         return {k: (len(returns), float(returns.mean())) for k, returns in groups.items()}
 
 
-class _ExplorationRecorder(ScriptedAgent):
-    """Passes ``agent``'s actions through and notes the cells it rides at and whether it reads the
-    map while exploring; it sees only what the agent sees."""
+class _ExplorationRecorder(TrialRecorder):
+    """Notes the cells the agent rides at and whether it reads the map while exploring, and turns
+    them, with the trial's problem (never shown to the agent), into the routes it saw."""
 
-    def __init__(self, agent: ScriptedAgent) -> None:
-        self.agent = agent
+    env: MetaBusEnv
 
-    def reset(self) -> None:
-        self.agent.reset()
+    def start_trial(self) -> None:
         self.rides: List[Cell] = []
         self.read_map = False
 
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
+    def note(self, obs: Dict[str, Any], info: Dict[str, Any], action: int) -> None:
         if info.get("episode_end") and info.get("episode_phase") == EXPLORATION:
             self._note_map(info["final_obs"])  # the exploration episode's last state
-        action = self.agent.act(obs, info)
         if int(obs["phase"]) == EXPLORATION:
             self._note_map(obs["obs"])
             if action == RIDE and int(obs["obs"][2]) == BUS:
                 self.rides.append((int(obs["obs"][0]), int(obs["obs"][1])))
-        return action
 
     def _note_map(self, state: np.ndarray) -> None:
         self.read_map |= _shows_map(state)
+
+    def trial_row(self, result: Dict[str, Any]) -> Tuple[Any, ...]:
+        stop_of = _stop_of(self.env.routes(int(result["problem_id"])))
+        seen = {stop_of[cell] for cell in self.rides}
+        missed_return = STEP_REWARD * self.env.horizon  # every step's cost, no goal reward
+        return (
+            len(seen & set(COLORED_STOPS)),
+            len(seen & set(GRAY_STOPS)),
+            self.read_map,
+            result["exploration_length"],
+            float(np.mean(result["execution_returns"])),
+            float(np.mean(np.isclose(result["execution_returns"], missed_return))),
+        )
 
 
 def _shows_map(state: np.ndarray) -> bool:
@@ -415,26 +424,9 @@ def exploration_report(
     ``problem_ids[k % len(problem_ids)]``, and ``instructions`` (one per problem ID) its
     execution episodes' instruction likewise.
     """
-    bus = env.unwrapped
-    if not isinstance(bus, MetaBusEnv):
-        raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
-    recorder = _ExplorationRecorder(agent)
-    missed_return = STEP_REWARD * bus.horizon  # every step's cost, no goal reward
-    rows = []
-    for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
-        stop_of = _stop_of(bus.routes(int(result["problem_id"])))
-        seen = {stop_of[cell] for cell in recorder.rides}
-        rows.append(
-            (
-                len(seen & set(COLORED_STOPS)),
-                len(seen & set(GRAY_STOPS)),
-                recorder.read_map,
-                result["exploration_length"],
-                float(np.mean(result["execution_returns"])),
-                float(np.mean(np.isclose(result["execution_returns"], missed_return))),
-            )
-        )
-    colored, gray, read_map, lengths, returns, missed = (np.array(column) for column in zip(*rows))
+    bus = unwrap(env, MetaBusEnv, "MetaBus-v0")
+    trials, _ = record_trials(env, _ExplorationRecorder(agent, bus), n_trials, seed, problem_ids, instructions)
+    colored, gray, read_map, lengths, returns, missed = trials
     return BusExplorationReport(colored, gray, read_map.astype(bool), lengths, returns, bus.variant, missed)
 
 
@@ -453,9 +445,7 @@ def discovery_rewards(
     :class:`BusExplorationReport`), a ride on one ridden before ("route again"), the step onto the
     map (map variant, its first time), and every other step. Keys in :data:`DISCOVERIES` order,
     only those that occur."""
-    bus = env.unwrapped
-    if not isinstance(bus, MetaBusEnv):
-        raise ValueError(f"env must be a MetaBus-v0 env, got {type(bus).__name__}")
+    bus = unwrap(env, MetaBusEnv, "MetaBus-v0")
     found: Dict[str, List[float]] = {kind: [] for kind in DISCOVERIES}
     for (states, actions), reward, problem_id in zip(trajectories, rewards, problem_ids):
         stop_of = _stop_of(bus.routes(int(problem_id)))

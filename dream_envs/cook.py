@@ -17,15 +17,16 @@ import cv2
 import numpy as np
 from gymnasium import spaces
 
+from dream_envs.agents import ScriptedAgent
+
 # The grid actions and the object codes are MetaBus's (the ride-bus action does nothing in a kitchen).
 from dream_envs.bus import ACTION_NAMES as GRID_ACTION_NAMES
 from dream_envs.bus import DOWN, DROP, END_EPISODE, FRIDGE, LEFT, MOVES, N_ACTIONS, NO_OBJECT, PICKUP, POT, RIGHT, UP
 from dream_envs.bus import NOOP, RIDE as RIDE_BUS  # noqa: F401 (unused here: this module's names for all 9 actions)
-from dream_envs.agents import ScriptedAgent
 from dream_envs.checks import check_choice, check_positive_int
-from dream_envs.play import play_trials
-from dream_envs.trial_env import EXPLORATION, SPLITS, TrialEnv
 from dream_envs.rendering import COLORS, PALETTE, GridCanvas
+from dream_envs.report import TrialRecorder, record_trials, unwrap
+from dream_envs.trial_env import EXPLORATION, SPLITS, TrialEnv
 
 GRID_SIZE = 3
 N_INGREDIENTS = 7
@@ -287,7 +288,7 @@ class MetaCookEnv(TrialEnv):
     is within 2 steps of the pot, so finishing the recipe always pays more. With
     ``undo_reward=-0.25`` (the paper's penalty read as replacing the step's) the pair nets 0, so
     such a loop costs only discounting: a DQN execution policy trained that way learned to loop
-    pickup/drop at a fridge until the horizon (see the MetaCook results in docs/results.md).
+    pickup/drop at a fridge until the horizon (see the MetaCook results in docs/results/metacook.md).
 
     **Termination.** An inner episode ends when the recipe is done (stage 4), on the end-episode
     action, or after ``horizon`` steps. In reward-free exploration only the last two apply. The
@@ -619,20 +620,15 @@ class CookReport:
         )
 
 
-class _CookRecorder(ScriptedAgent):
-    """Passes ``agent``'s actions through and notes the fridges it picks from while exploring and
-    each execution episode's recipe and actions; it sees only what the agent sees."""
+class _CookRecorder(TrialRecorder):
+    """Notes the fridges the agent picks from while exploring and each execution episode's recipe
+    and actions, and replays those with the trial's problem (never shown to the agent)."""
 
-    def __init__(self, agent: ScriptedAgent) -> None:
-        self.agent = agent
-
-    def reset(self) -> None:
-        self.agent.reset()
+    def start_trial(self) -> None:
         self.opened: set = set()
         self.episodes: List[Tuple[Tuple[int, int], List[int]]] = []
 
-    def act(self, obs: Dict[str, Any], info: Dict[str, Any]) -> int:
-        action = self.agent.act(obs, info)
+    def note(self, obs: Dict[str, Any], info: Dict[str, Any], action: int) -> None:
         x, y = int(obs["obs"][0]), int(obs["obs"][1])
         if int(obs["phase"]) == EXPLORATION:
             if fridge_picked(x, y, action) is not None:
@@ -641,7 +637,19 @@ class _CookRecorder(ScriptedAgent):
             if int(obs["episode_start"]):
                 self.episodes.append((tuple(int(i) for i in obs["instruction"]), []))
             self.episodes[-1][1].append(action)
-        return action
+
+    def trial_row(self, result: Dict[str, Any]) -> Tuple[Any, ...]:
+        return len(self.opened), result["exploration_length"]
+
+    def episode_rows(self, result: Dict[str, Any]) -> List[Tuple[Any, ...]]:
+        problem_id = int(result["problem_id"])
+        contents = fridge_contents(problem_id)
+        rows = []
+        for (instruction, actions), ret in zip(self.episodes, result["execution_returns"]):
+            stage, undos, second_pick = _replay_execution(contents, instruction, actions)
+            optimal = optimal_execution_return(problem_id, instruction)
+            rows.append((ret, optimal, stage, undos, instruction, second_pick))
+        return rows
 
 
 def _replay_execution(
@@ -680,19 +688,8 @@ def behaviour_report(
     to ``problem_ids[k % len(problem_ids)]``, and ``instructions`` (one per problem ID) its
     execution episodes' instruction likewise.
     """
-    cook = env.unwrapped
-    if not isinstance(cook, MetaCookEnv):
-        raise ValueError(f"env must be a MetaCook-v0 env, got {type(cook).__name__}")
-    recorder = _CookRecorder(agent)
-    opened, lengths, episodes = [], [], []
-    for result in play_trials(env, recorder, n_trials, seed, problem_ids, instructions):
-        problem_id = int(result["problem_id"])
-        contents = fridge_contents(problem_id)
-        opened.append(len(recorder.opened))
-        lengths.append(result["exploration_length"])
-        for (instruction, actions), ret in zip(recorder.episodes, result["execution_returns"]):
-            stage, undos, second_pick = _replay_execution(contents, instruction, actions)
-            optimal = optimal_execution_return(problem_id, instruction)
-            episodes.append((ret, optimal, stage, undos, instruction, second_pick))
-    returns, optimal, stages, undos, instructions, second_picks = (np.array(column) for column in zip(*episodes))
-    return CookReport(np.array(opened), np.array(lengths), returns, optimal, stages, undos, instructions, second_picks)
+    cook = unwrap(env, MetaCookEnv, "MetaCook-v0")
+    trials, episodes = record_trials(env, _CookRecorder(agent, cook), n_trials, seed, problem_ids, instructions)
+    opened, lengths = trials
+    returns, optimal, stages, undos, recipes, second_picks = episodes
+    return CookReport(opened, lengths, returns, optimal, stages, undos, recipes, second_picks)

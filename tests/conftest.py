@@ -48,3 +48,20 @@ def played_side_by_side():
         return logs[0]
 
     return check
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "opengl: builds SignNav3D-v0, which needs OpenGL (skipped, with the reason, without it)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the tests marked ``opengl`` where SignNav3D-v0 cannot be built, saying why."""
+    needs_opengl = [item for item in items if item.get_closest_marker("opengl")]
+    if not needs_opengl:
+        return
+    from dream_envs.sign_nav import opengl_available
+
+    available, reason = opengl_available()
+    if not available:
+        for item in needs_opengl:
+            item.add_marker(pytest.mark.skip(reason=reason))

@@ -26,7 +26,7 @@ def _available(env_id: str) -> bool:
         return False
 
 
-@pytest.fixture(params=ENV_IDS)
+@pytest.fixture(params=[pytest.param(e, marks=pytest.mark.opengl) if e == "SignNav3D-v0" else e for e in ENV_IDS])
 def env_id(request):
     if not _available(request.param):
         pytest.fail(f"{request.param} is registered but its module is missing")

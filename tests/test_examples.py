@@ -162,6 +162,7 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
         meta_test.load_model(str(tmp_path / "dqn.zip"))
 
 
+@pytest.mark.opengl
 def test_meta_test_plays_the_sign_oracle_on_the_env_it_reads(tmp_path):
     # SignNav3D's oracle navigates by its env's pose: it must play on that env, not on a fresh copy
     from sb3_dream import DREAM

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 import warnings
 
 import gymnasium as gym
@@ -11,6 +14,7 @@ import pytest
 
 import dream_envs
 from dream_envs import ScriptedAgent, play_trial, public_info, sign_nav
+from dream_envs.sign_nav import engine
 from dream_envs.sign_nav import (
     END_EPISODE,
     MOVE_FORWARD,
@@ -60,6 +64,7 @@ def view_from(env, x, z, direction):
     return env._world.render_obs()
 
 
+@pytest.mark.opengl
 def test_spaces_and_splits(env):
     space = env.observation_space
     assert set(space.spaces) == {"obs", "instruction", "phase", "episode_start", "prev_action", "prev_reward"}
@@ -75,6 +80,7 @@ def test_spaces_and_splits(env):
     assert "problem_id" in info and info["problem_id"] in (0, 1)
 
 
+@pytest.mark.opengl
 @pytest.mark.parametrize(
     "problem_id, instruction, kind, colour, expected",
     [
@@ -93,6 +99,7 @@ def test_touching_rewards_and_ends_the_episode(env, problem_id, instruction, kin
     assert info["execution_returns"] == [expected]
 
 
+@pytest.mark.opengl
 def test_turning_and_walking_in_the_open_give_nothing(env):
     start_execution(env, BLUE, BOX)
     env._set_agent_pose(5.0, 4.5, 0.0)
@@ -102,6 +109,7 @@ def test_turning_and_walking_in_the_open_give_nothing(env):
     assert np.allclose(env.agent_position, [5.0 + 0.7 * math.cos(math.pi / 4), 4.5 + 0.7 * math.sin(math.pi / 4)])
 
 
+@pytest.mark.opengl
 def test_reward_free_exploration_touch_ends_episode_without_reward(env):
     obs, _ = env.reset(seed=1, options={"problem_id": BLUE})
     place_before(env, "box", "blue")  # the rewarding object for a box instruction: still 0 here
@@ -112,6 +120,7 @@ def test_reward_free_exploration_touch_ends_episode_without_reward(env):
     assert obs["prev_reward"][0] == 0.0
 
 
+@pytest.mark.opengl
 def test_exploration_with_rewards_variant():
     env = SignNav3DEnv(reward_free_exploration=False)
     try:
@@ -124,6 +133,7 @@ def test_exploration_with_rewards_variant():
         env.close()
 
 
+@pytest.mark.opengl
 def test_the_sign_shows_the_problem_and_nothing_else_does(env):
     front = (SIGN_CENTER[0] - 2.5, SIGN_CENTER[2], 0.0)  # in front of the sign, facing it (east)
     elsewhere = [(5.0, 4.0, math.pi / 2), (7.5, 9.0, math.pi), (3.0, 10.0, -math.pi / 2)]  # top room; lower rooms
@@ -141,6 +151,7 @@ def test_the_sign_shows_the_problem_and_nothing_else_does(env):
         assert np.array_equal(a, b)  # the sign out of view: the problem is invisible
 
 
+@pytest.mark.opengl
 def test_observation_carries_no_problem_id(env):
     """With the same seed, both problems give the same non-image observation and the same start view
     when the sign is not in view."""
@@ -155,6 +166,7 @@ def test_observation_carries_no_problem_id(env):
             assert np.array_equal(first[BLUE]["obs"], first[RED]["obs"])
 
 
+@pytest.mark.opengl
 def test_seeding_is_reproducible(env):
     actions = [MOVE_FORWARD, 0, MOVE_FORWARD, 1, MOVE_FORWARD, END_EPISODE, MOVE_FORWARD, 0]
 
@@ -174,6 +186,7 @@ def test_seeding_is_reproducible(env):
     assert not np.array_equal(a[0][0], c[0][0])  # another seed, another start
 
 
+@pytest.mark.opengl
 def test_starts_are_random_behind_the_barrier(env):
     positions = []
     for seed in range(20):
@@ -185,6 +198,7 @@ def test_starts_are_random_behind_the_barrier(env):
     assert positions.std(axis=0).min() > 0.3
 
 
+@pytest.mark.opengl
 def test_pinned_problem_and_instruction(env):
     obs = start_execution(env, RED, KEY, seed=3)
     assert np.array_equal(obs["instruction"], KEY)
@@ -192,6 +206,7 @@ def test_pinned_problem_and_instruction(env):
     assert info["problem_id"] == RED
 
 
+@pytest.mark.opengl
 @pytest.mark.parametrize(
     "options",
     [{"problem_id": 2}, {"problem_id": -1}, {"instruction": [0]}, {"instruction": [4]}, {"instruction": [1, 2]}],
@@ -201,6 +216,7 @@ def test_bad_reset_options(env, options):
         env.reset(seed=0, options=options)
 
 
+@pytest.mark.opengl
 def test_bad_constructor_arguments_and_actions(env):
     with pytest.raises(ValueError, match="split"):
         SignNav3DEnv(split="val")
@@ -214,6 +230,7 @@ def test_bad_constructor_arguments_and_actions(env):
             env.step(action)
 
 
+@pytest.mark.opengl
 def test_checkers_pass(env):
     from gymnasium.utils.env_checker import check_env
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
@@ -224,6 +241,7 @@ def test_checkers_pass(env):
         sb3_check_env(env, warn=True, skip_render_check=True)
 
 
+@pytest.mark.opengl
 def test_render():
     env = gym.make("SignNav3D-v0", render_mode="rgb_array")
     try:
@@ -241,8 +259,8 @@ def test_missing_opengl_gives_a_clear_error(monkeypatch):
     def no_egl():
         raise ImportError('Library "EGL" not found.')
 
-    monkeypatch.setattr(sign_nav, "_ENGINE", None)
-    monkeypatch.setattr(sign_nav, "_load_engine", no_egl)
+    monkeypatch.setattr(engine, "_ENGINE", None)
+    monkeypatch.setattr(engine, "_import_engine", no_egl)
     with pytest.raises(OpenGLUnavailableError, match=r"needs OpenGL.*EGL.*libegl1") as excinfo:
         SignNav3DEnv()
     assert isinstance(excinfo.value, RuntimeError)
@@ -252,23 +270,25 @@ def test_missing_opengl_gives_a_clear_error(monkeypatch):
     def no_miniworld():
         raise ModuleNotFoundError("No module named 'miniworld'", name="miniworld")
 
-    monkeypatch.setattr(sign_nav, "_load_engine", no_miniworld)
+    monkeypatch.setattr(engine, "_import_engine", no_miniworld)
     with pytest.raises(ImportError, match="pip install"):
         SignNav3DEnv()
 
 
+@pytest.mark.opengl
 def test_gl_context_failure_gives_a_clear_error(env, monkeypatch):
     # The libraries load but no GL context can be made (e.g. no usable driver).
-    engine = sign_nav._engine()
+    pyglet = engine.load_engine().pyglet
 
     def no_context(*args, **kwargs):
-        raise engine.pyglet.gl.ContextException("Could not create GL context")
+        raise pyglet.gl.ContextException("Could not create GL context")
 
-    monkeypatch.setattr(engine.pyglet.window, "Window", no_context)
+    monkeypatch.setattr(pyglet.window, "Window", no_context)
     with pytest.raises(OpenGLUnavailableError, match="Could not create GL context.*DISPLAY"):
         SignNav3DEnv()
 
 
+@pytest.mark.opengl
 @pytest.mark.parametrize("problem_id, instruction", [(BLUE, BALL), (BLUE, BOX), (RED, KEY), (RED, BOX)])
 def test_oracle_reads_the_sign_and_scores_one(env, problem_id, instruction):
     oracle = dream_envs.make_oracle(env)
@@ -288,6 +308,7 @@ class SwapRedBlue(gym.ObservationWrapper):
         return {**obs, "obs": obs["obs"][..., ::-1].copy()}
 
 
+@pytest.mark.opengl
 def test_oracle_reads_pixels_not_the_problem(env):
     """Shown images with red and blue swapped, the oracle misreads the sign and touches the wrong object."""
     oracle = env.oracle()
@@ -295,6 +316,7 @@ def test_oracle_reads_pixels_not_the_problem(env):
     assert oracle.colour == RED and result["execution_returns"] == [-1.0]
 
 
+@pytest.mark.opengl
 def test_oracle_many_trials():
     n_exec = 2
     multi = SignNav3DEnv(n_exec_episodes=n_exec)
@@ -306,6 +328,7 @@ def test_oracle_many_trials():
     assert np.all(np.array(returns) == 1.0)
 
 
+@pytest.mark.opengl
 def test_sign_pixels_counts_the_letters_in_view_and_restores_the_view(env):
     env.reset(seed=0, options={"problem_id": RED})
     front = view_from(env, SIGN_CENTER[0] - 2.5, SIGN_CENTER[2], 0.0)
@@ -324,6 +347,7 @@ class EndExploration(ScriptedAgent):
         return END_EPISODE
 
 
+@pytest.mark.opengl
 def test_exploration_report_tells_reading_explorers_from_idle_ones(env):
     reading = sign_nav.exploration_report(env, env.oracle(), n_trials=4, seed=3)
     assert reading.sign_seen.all() and reading.past_barrier.all()
@@ -361,6 +385,7 @@ class TouchRedBall(ScriptedAgent):
         return MOVE_FORWARD
 
 
+@pytest.mark.opengl
 def test_exploration_report_tells_how_each_execution_episode_ended(env):
     # 6 trials pinned to every (problem, instruction): each target once, in EXECUTION_TARGETS' order
     pins = dict(problem_ids=[0, 0, 0, 1, 1, 1], instructions=[[1], [2], [3], [1], [2], [3]])
@@ -381,6 +406,7 @@ def test_exploration_report_tells_how_each_execution_episode_ended(env):
     assert "blue ball 0/1/0/0, blue key 0/1/0/0" in wrong.summary()
 
 
+@pytest.mark.opengl
 def test_public_info_has_no_problem(env):
     _, info = env.reset(seed=0)
     assert "problem_id" not in public_info(info)
@@ -388,8 +414,34 @@ def test_public_info_has_no_problem(env):
 
 def test_importing_needs_no_opengl():
     """The engine (pyglet, miniworld) is imported only when an env is built."""
-    import subprocess
-    import sys
-
     code = "import sys, dream_envs.sign_nav; assert 'pyglet' not in sys.modules and 'miniworld' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_without_opengl_the_cli_lists_sign_nav_as_unavailable_and_the_rest(monkeypatch, capsys):
+    import dream_envs.__main__ as cli
+
+    monkeypatch.setattr(cli, "opengl_available", lambda: (False, "no EGL library"))
+    monkeypatch.setattr("sys.argv", ["dream_envs", "--trials", "1"])
+    cli.main()
+    rows = capsys.readouterr().out.splitlines()[1:]
+    assert [row.split()[0] for row in rows] == [env_id for env_id, _ in cli.DEFAULT_VARIANTS]
+    (sign_row,) = [row for row in rows if row.startswith("SignNav3D-v0")]
+    assert sign_row.endswith("unavailable: no EGL library")
+    assert all(row.count("±") == 2 for row in rows if row is not sign_row)  # the others were played
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="an unreachable X display fails this way on Linux")
+def test_without_opengl_the_sign_nav_tests_skip_with_the_reason():
+    # An unreachable X display: the engine loads but no GL context can be made.
+    env = {**os.environ, "DISPLAY": ":987", "PYOPENGL_PLATFORM": ""}
+    check = "from dream_envs.sign_nav import opengl_available as a; ok, why = a(); assert not ok and 'DISPLAY' in why"
+    subprocess.run([sys.executable, "-c", check], env=env, check=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", __file__, "-q", "-rs", "-p", "no:cacheprovider", "-k", "not without_opengl"],
+        env=env,
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "failed" not in out and "error" not in out.lower().replace("openglunavailableerror", ""), out
+    assert "needs OpenGL" in out and "SKIPPED" in out, out
