@@ -5,8 +5,8 @@ experiment runner (``--preset``) and the rl-zoo3 hyperparameter files read them 
 checks the zoo's YAML files agree). Each preset is a dict of constructor keyword arguments.
 
 ``paper`` is the default (Appendix B.4 and Table 1; learning starts from the authors' code).
-``fast`` changes only *when and how long* things happen, to learn the grid worlds in minutes on a
-laptop CPU; every network, loss and the update ratio (one update of each part per 4 env steps)
+``fast`` changes only *when and how long* things happen, for the grid worlds on a laptop CPU;
+every network, loss and the update ratio (one update of each part per 4 env steps)
 stay the paper's:
 
 * ``exploration_learning_starts`` 8000 -> 100 trials and ``execution_learning_starts`` 500 -> 100:
@@ -18,7 +18,7 @@ RL2DQN's ``fast`` makes the same schedule changes in its own terms: learning sta
 100 trials of the grid worlds (4000 env steps instead of 16000), epsilon decays over 60K steps
 (DREAM's 2 x 30K) instead of 500K, and targets sync every 1000 updates instead of 5000.
 
-Compared side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results.md).
+Compared side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results/metabus.md).
 """
 
 from typing import Any, Dict

@@ -79,11 +79,13 @@ def test_bad_settings_are_rejected():
 
 
 def test_models_of_each_algorithm_and_preset():
-    fast = RunConfig(preset="fast", dream_kwargs=(("buffer_size", 50), ("execution_buffer_size", 100)))
+    small = (("buffer_size", 50), ("execution_buffer_size", 100), ("learning_starts", 50))  # SB3's names too
+    fast = RunConfig(preset="fast", dream_kwargs=small)
     dream = make_model("dream", "MetaBandit-v0", fast, seed=0)
     ablation = make_model("dream_no_bottleneck", "MetaBandit-v0", fast, seed=0)
     assert dream.bottleneck and not ablation.bottleneck
     assert (dream.exploration_learning_starts, dream.eps_decay_steps, dream.buffer_size) == (100, 30_000, 50)
+    assert dream.learning_starts == ablation.learning_starts == 50
     rl2 = make_model("rl2dqn", "MetaBandit-v0", RunConfig(preset="fast", rl2dqn_kwargs=(("buffer_size", 50),)), seed=0)
     assert (rl2.learning_starts, rl2.exploration_steps, rl2.target_update_interval) == (4000, 60_000, 1000)
     paper = make_model("rl2dqn", "MetaBandit-v0", RunConfig(), seed=0)
@@ -93,7 +95,7 @@ def test_models_of_each_algorithm_and_preset():
     ]  # fmt: skip
 
 
-def test_an_algorithm_is_added_by_registering_its_spec(monkeypatch):
+def test_an_algorithm_is_added_by_registering_its_spec(monkeypatch, tmp_path):
     from sb3_dream.dream import DREAM
     from sb3_dream.experiments import ALGORITHMS, AlgorithmSpec, register_algorithm
 
@@ -111,6 +113,8 @@ def test_an_algorithm_is_added_by_registering_its_spec(monkeypatch):
     assert (model.target_update_interval, model.buffer_size) == (100, 50)  # its preset, then the overrides
     with pytest.raises(ValueError, match="preset='fast' is not defined for dream_sync100; its presets: 'paper'"):
         make_model(spec.name, "MetaBandit-v0", RunConfig(preset="fast"), seed=0)
+    with pytest.raises(SystemExit, match="preset='fast' is not defined for dream_sync100"):
+        experiments.main(["--algos", "dream", spec.name, "--preset", "fast", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="must not set bottleneck: choose the algorithm dream or dream_no_bottleneck"):
         RunConfig(dream_kwargs=(("bottleneck", True),))
 

@@ -74,7 +74,7 @@ def test_packaged_hyperparameters_are_the_paper_preset_for_every_env(algo):
     defaults = {
         name: p.default
         for name, p in inspect.signature(cls.__init__).parameters.items()
-        if name not in NOT_HYPERPARAMETERS
+        if name not in NOT_HYPERPARAMETERS and p.kind is not p.VAR_KEYWORD  # **sb3_kwargs: SB3's names it rejects
     }
     default_policy = inspect.signature(cls.__init__).parameters["policy"].default
     config = yaml.safe_load(hyperparams_path(algo).read_text())
@@ -220,3 +220,7 @@ def test_zoo_trains_dream_with_sb3s_learning_starts(tmp_path, capsys):
     assert "('learning_starts', 50)" in capsys.readouterr().out
     model = DREAM.load(logs / "dream" / "MetaBus-v0_1" / "MetaBus-v0.zip")
     assert model.learning_starts == 50 and model.num_timesteps == 120
+    # SB3's names that DREAM has no use for are errors naming its own, not silently ignored.
+    with pytest.raises(ValueError, match="DREAM does not take SB3's 'exploration_fraction': .*eps_decay_steps"):
+        main(["train", "--algo", "dream", "--env", "MetaBus-v0", "-n", "8", "-f", str(logs), "-params",
+              *TINY["dream"], "exploration_fraction:0.1"])  # fmt: skip

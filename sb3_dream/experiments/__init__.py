@@ -34,7 +34,7 @@ from sb3_dream.experiments.report import (
     summarize,
     write_summary,
 )
-from sb3_dream.experiments.runner import check_eval_splits, plan_runs, run_experiments
+from sb3_dream.experiments.runner import check_eval_splits, check_presets, plan_runs, run_experiments
 from sb3_dream.experiments.training import run_one
 
 __all__ = [
@@ -51,6 +51,7 @@ __all__ = [
     "algorithm_kwargs",
     "build_parser",
     "check_eval_splits",
+    "check_presets",
     "finished_runs",
     "init_checkpoint",
     "load_curve",

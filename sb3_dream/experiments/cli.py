@@ -93,7 +93,7 @@ from sb3_dream.evaluation import BEST_TIES
 from sb3_dream.experiments.algorithms import ALGORITHMS, override_fields, preset_names
 from sb3_dream.experiments.config import EnvSpec, RunConfig, parse_kwargs
 from sb3_dream.experiments.report import oracle_return, plot_curves, summarize, with_finished_runs, write_summary
-from sb3_dream.experiments.runner import check_eval_splits, plan_runs, run_experiments
+from sb3_dream.experiments.runner import check_eval_splits, check_presets, plan_runs, run_experiments
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -205,6 +205,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
         )
         runs = plan_runs(args.algos, [EnvSpec.parse(e) for e in args.envs], args.seeds)
         check_eval_splits(runs, config)
+        check_presets(runs, config)
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
     except ValueError as error:

@@ -9,7 +9,7 @@ from typing import Any, Dict, List, Optional, Sequence
 import numpy as np
 
 from dream_envs import env_splits
-from sb3_dream.experiments.algorithms import ALGORITHMS
+from sb3_dream.experiments.algorithms import ALGORITHMS, algorithm_kwargs
 from sb3_dream.experiments.backends import Backend, LocalPool
 from sb3_dream.experiments.checkpoints import Checkpointer, extendable
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig
@@ -38,6 +38,12 @@ def check_eval_splits(runs: Sequence[Run], config: RunConfig) -> None:
             raise ValueError(f"eval_splits={missing!r} is not valid for {env.label}; accepted values: {accepted}")
 
 
+def check_presets(runs: Sequence[Run], config: RunConfig) -> None:
+    """Raise a ``ValueError`` unless every algorithm of ``runs`` defines the preset ``config.preset``."""
+    for algo in dict.fromkeys(run.algo for run in runs):
+        algorithm_kwargs(algo, config)
+
+
 def run_experiments(
     runs: Sequence[Run],
     config: RunConfig,
@@ -57,6 +63,7 @@ def run_experiments(
     elif jobs is not None:
         raise ValueError("jobs is the local pool's: give jobs or backend, not both")
     check_eval_splits(runs, config)
+    check_presets(runs, config)
     out = pathlib.Path(out)
     records: List[Dict[str, Any]] = []
     pending: List[Run] = []
