@@ -41,7 +41,8 @@ the returned observation belongs to. On the last step of an inner episode it als
 ``episode_end=True``, ``episode_return``, ``episode_length``, ``episode_phase``,
 ``episode_truncated`` (ended by the horizon, not by the MDP or the end-episode action) and ``final_obs``
 (that episode's last inner ``obs``: the step already returns the next episode's first
-observation). On the trial's last step it holds ``execution_returns``, the list of the N
+observation); with ``render_mode="rgb_array"`` also ``final_frame``, :meth:`render`'s picture of
+that last state. On the trial's last step it holds ``execution_returns``, the list of the N
 execution returns.
 """
 
@@ -312,6 +313,8 @@ class TrialEnv(gym.Env, ABC):
                 "episode_phase": self.phase,
                 "final_obs": np.array(self._inner_obs, copy=True),
             }
+            if self.render_mode == "rgb_array":  # render() will show the next episode's start
+                end_info["final_frame"] = self._render_frame()
             if self.phase == EXECUTION:
                 self._execution_returns.append(self._episode_return)
             if self.episode_index == self.n_exec_episodes:

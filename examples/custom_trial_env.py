@@ -165,7 +165,7 @@ def main() -> None:
     gym.register("SignCorridor-v0", entry_point=SignCorridorEnv)
     vec_env = make_vec_env("SignCorridor-v0", n_envs=args.n_envs, seed=args.seed)
     # A tiny problem family: start learning after 50 trials and decay epsilon over 5000 steps of
-    # each policy (the paper's schedules are for far larger families: see sb3_dream.dream.presets).
+    # each policy (the paper's schedules are for far larger families: see sb3_dream.presets).
     model = DREAM(
         vec_env,
         seed=args.seed,

@@ -93,7 +93,7 @@ def record_trial(
             else:
                 returns.append(info["episode_return"])
                 text = f"{action_name(env_id, action)}   episode return {info['episode_return']:+.2f}"
-            frames += [with_banner(frames[-1][BANNER:], text)] * hold  # hold the last picture
+            frames += [with_banner(info["final_frame"], text)] * hold  # the episode's last state, held
             episode_return = 0.0
             if not terminated:
                 index = info["episode_index"]

@@ -29,7 +29,6 @@ from dream_envs.cook import (
     UP,
     CookReport,
     MetaCookEnv,
-    _replay_execution,
     behaviour_report,
     cook_transition,
     first_openings,
@@ -40,6 +39,7 @@ from dream_envs.cook import (
     recipe_stage,
     valid_instructions,
 )
+from dream_envs.cook.report import _replay_execution
 
 # Problem 290 holds (4, 7, 6): fridge 0 at (2, 0) has 4, fridge 1 at (2, 1) has 7, fridge 2 at (2, 2) has 6.
 PROBLEM = problem_id_of((4, 7, 6))

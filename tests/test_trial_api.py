@@ -286,3 +286,23 @@ def test_bandit_bad_arguments():
         gym.make("MetaBandit-v0", n_actions=1)
     with pytest.raises(ValueError, match="horizon"):
         gym.make("MetaBandit-v0", horizon=0)
+
+
+def test_final_frame_pictures_the_last_state_of_each_episode():
+    env = gym.make("MetaBus-v0", render_mode="rgb_array", n_exec_episodes=2)
+    oracle = dream_envs.make_oracle(env)
+    obs, info = env.reset(seed=0)
+    previous, ends, terminated = env.render(), 0, False
+    while not terminated:
+        obs, _, terminated, _, info = env.step(oracle.act(obs, public_info(info)))
+        if info.get("episode_end"):
+            ends += 1
+            assert not np.array_equal(info["final_frame"], previous)  # the state the last action reached
+        else:
+            assert "final_frame" not in info
+        previous = env.render()
+    assert ends == 3 and np.array_equal(info["final_frame"], previous)  # the trial's end: nothing new started
+    unrendered = gym.make("MetaBus-v0")
+    unrendered.reset(seed=0)
+    *_, info = unrendered.step(6)  # the end-episode action
+    assert info["episode_end"] and "final_frame" not in info  # drawn only for rgb_array rendering
