@@ -104,8 +104,8 @@ class MetaCookEnv(TrialEnv):
     nets -0.1 over two steps (idling: -0.2) and never raises the optimal return: every ingredient
     is within 2 steps of the pot, so finishing the recipe always pays more. With
     ``undo_reward=-0.25`` (the paper's penalty read as replacing the step's) the pair nets 0, so
-    such a loop costs only discounting: a DQN execution policy trained that way learned to loop
-    pickup/drop at a fridge until the horizon (see the MetaCook results in docs/results/metacook.md).
+    such a loop costs only discounting, and an execution policy can settle on looping pickup/drop
+    at a fridge until the horizon (the MetaCook results in the docs show it).
 
     **Termination.** An inner episode ends when the recipe is done (stage 4), on the end-episode
     action, or after ``horizon`` steps. In reward-free exploration only the last two apply. The
@@ -115,8 +115,7 @@ class MetaCookEnv(TrialEnv):
     ``1 - 0.2 (d_A + d_B)`` with ``d_X`` = 1 if the middle fridge holds X, else 2: 0.6, 0.4 or
     0.2 (:func:`optimal_execution_return`; needs a horizon of 12 or more). The mean over the
     split's trials is 0.364 on "train", 0.343 on "test" (0.328 on "test_problems", 0.343 on
-    "test_instructions"); uniformly random actions get about
-    -1.98. The optimal explorer opens the three fridges in 7 steps and ends the episode
+    "test_instructions"). The optimal explorer opens the three fridges in 7 steps and ends the episode
     (:meth:`oracle`).
 
     :param split: "train", "test", "all", "test_problems" or "test_instructions" (see above).
