@@ -13,6 +13,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_dream import DREAM, MetaEvalCallback
+from sb3_dream.dream import losses, updates
 from sb3_dream.dream.dream import EXECUTION_TARGET_Z
 from sb3_dream.dream.policies import DreamPolicy, TrajectoryDecoder
 from sb3_dream.evaluation import as_trial_agent, evaluate_meta
@@ -36,7 +37,8 @@ def bus_model():
 
 def test_defaults_are_the_papers():
     model = DREAM("MetaBandit-v0")
-    assert (model.learning_rate, model.batch_size, model.gamma, model.train_freq_steps) == (1e-4, 32, 0.99, 4)
+    assert (model.learning_rate, model.batch_size, model.gamma, model.train_every) == (1e-4, 32, 0.99, 4)
+    assert (model.learning_starts, model.gradient_steps) == (0, 1)
     assert (model.target_update_interval, model.max_grad_norm, model.eps_decay_steps) == (5000, 10.0, 250_000)
     assert (model.buffer_size, model.execution_buffer_size) == (16_000, 100_000)
     assert (model.reward_penalty, model.encoder_variance, model.bottleneck_weight) == (0.01, 0.1, 1.0)
@@ -80,11 +82,14 @@ def test_exploration_reward_is_the_information_gain():
 def test_bottleneck_only_pushes_norms_above_k():
     model = DREAM("MetaBandit-v0", bottleneck_threshold=10.0)
     f = th.tensor([[1.0, 2.0], [3.0, 3.0]], requires_grad=True)  # ||f||^2 = 5 (< K) and 18 (> K)
-    loss = model.bottleneck_loss(f)
+    loss = losses.bottleneck_loss(f, model.bottleneck_threshold)
     loss.backward()
     assert loss.item() == pytest.approx((10.0 + 18.0) / 2)
     np.testing.assert_allclose(f.grad.numpy(), [[0.0, 0.0], [3.0, 3.0]])  # d/df of mean(||f||^2) on row 2 only
-    assert DREAM("MetaBandit-v0", bottleneck=False).bottleneck_loss(f).item() == 0.0
+    no_bottleneck = DREAM("MetaBus-v0", bottleneck=False, seed=0, **FAST)
+    no_bottleneck.learn(300)
+    exe, traj = no_bottleneck.replay_buffer.sample_execution(4, no_bottleneck._rng)
+    assert updates.execution_update(no_bottleneck, exe, traj)["bottleneck_loss"] == 0.0
 
 
 def test_decoder_gives_every_prefix_in_one_pass_and_ignores_padding():
@@ -124,16 +129,16 @@ def test_z_sources_alternate_across_trials():
 def test_f_source_z_is_noisy_around_f_and_g_source_is_the_decoder():
     model = DREAM("MetaBandit-v0", seed=0)
     pid = np.array([3, 3, 3, 3])
-    z = model._encode(pid, noisy=True)
-    f = model._encode(pid, noisy=False)
+    z = model.encode(pid, noisy=True)
+    f = model.encode(pid, noisy=False)
     assert np.allclose(f, f[0]) and not np.allclose(z, z[0])
     assert np.std(z - f) == pytest.approx(np.sqrt(0.1), rel=0.25)
     # a seeded generator gives the same noise (diagnose's noisy-code run), the global one goes on
-    seeded = [model._encode(pid, noisy=True, generator=th.Generator().manual_seed(5)) for _ in range(2)]
+    seeded = [model.encode(pid, noisy=True, generator=th.Generator().manual_seed(5)) for _ in range(2)]
     np.testing.assert_array_equal(seeded[0], seeded[1])
     assert not np.allclose(seeded[0], z) and np.std(seeded[0] - f) == pytest.approx(np.sqrt(0.1), rel=0.25)
     no_bottleneck = DREAM("MetaBandit-v0", bottleneck=False, seed=0)
-    np.testing.assert_array_equal(no_bottleneck._encode(pid, noisy=True), no_bottleneck._encode(pid, noisy=False))
+    np.testing.assert_array_equal(no_bottleneck.encode(pid, noisy=True), no_bottleneck.encode(pid, noisy=False))
 
 
 class ScrambleProblemId(gym.Wrapper):
@@ -277,6 +282,7 @@ def test_horizon_cut_execution_steps_are_terminal_unless_bootstrapping(bootstrap
         assert terminals == model._episode_num > 10
 
 
+@pytest.mark.opengl
 def test_image_trials_train_and_meta_test():
     """SignNav3D: SB3 stores images channel-first, the env and info["final_obs"] give them channel-last."""
     small = dict(exploration_learning_starts=2, execution_learning_starts=2, buffer_size=20, execution_buffer_size=200)
@@ -288,6 +294,7 @@ def test_image_trials_train_and_meta_test():
     assert result.returns.shape == (1, 1) and -1.0 <= result.mean <= 1.0
 
 
+@pytest.mark.opengl
 def test_image_downsample_pools_every_networks_frames_and_is_saved(tmp_path):
     small = dict(exploration_learning_starts=2, execution_learning_starts=2, buffer_size=20, execution_buffer_size=200)
     model = DREAM("SignNav3D-v0", seed=0, batch_size=4, policy_kwargs=dict(image_downsample=2), **small)
@@ -369,7 +376,7 @@ def test_execution_buffer_links_each_episode_and_samples_whole_ones():
     assert (buffer.dones[linked] == 0).all()  # nothing continues past a terminal transition
     np.testing.assert_array_equal(buffer.episode_links()[:n], links)  # what a saved buffer rebuilds
 
-    exe, traj = model._sample_execution(8)
+    exe, traj = model.replay_buffer.sample_execution(8, model._rng, episodes=model.execution_sampling == "episodes")
     owners = exe.trajectories.numpy()
     assert len(exe.slots) == len(traj.states) == 8 and sorted(set(owners)) == list(range(8))
     assert len(exe.actions) > 8  # whole episodes: more transitions than trajectories
@@ -446,16 +453,16 @@ def test_episode_batches_score_each_transition_as_the_paper_batch_does():
     # transitions, so they differ by design.)
     model = DREAM("MetaBus-v0", seed=4, encoder_variance=0.0, execution_sampling="episodes", **FAST)
     model.learn(500)
-    exe, traj = model._sample_execution(6)
+    exe, traj = model.replay_buffer.sample_execution(6, model._rng, episodes=model.execution_sampling == "episodes")
     owner = exe.trajectories.numpy()
     assert len(owner) > 6  # episodes of several transitions share their trajectory
     one_by_one = exe._replace(slots=exe.slots[owner], trajectories=th.arange(len(owner)))
     saved = {k: v.clone() for k, v in model.policy.state_dict().items()}
     optimizer = copy.deepcopy(model.policy.optimizer.state_dict())
-    shared = model._execution_losses(exe, traj)
+    shared = updates.execution_update(model, exe, traj)
     model.policy.load_state_dict(saved)
     model.policy.optimizer.load_state_dict(optimizer)
-    copied = model._execution_losses(one_by_one, model.replay_buffer.exploration.get(one_by_one.slots))
+    copied = updates.execution_update(model, one_by_one, model.replay_buffer.exploration.get(one_by_one.slots))
     for key in ("execution_loss_traj", "execution_loss_prob", "execution_q_mean"):
         assert shared[key] == pytest.approx(copied[key], rel=1e-5), key
 
@@ -563,7 +570,7 @@ def test_execution_time_input_is_an_option_fed_the_step_within_each_execution_ep
     # The step changes Q: a greedy execution policy need not repeat itself on a second visit.
     q = model.policy.execution_q
     x = (th.tensor([[4, 5, 1]]), th.tensor([[1]]), th.zeros(1, 64))
-    assert not th.allclose(q(*x, th.tensor([0])), q(*x, th.tensor([3])))
+    assert not th.allclose(q(*x, th.tensor([0]))[0], q(*x, th.tensor([3]))[0])
     with pytest.raises(ValueError, match="pass steps"):
         q(*x)
     with pytest.raises(ValueError, match="episode_start"):
@@ -600,9 +607,9 @@ def test_recurrent_execution_q_learns_each_episode_as_acting_unrolled_it(tmp_pat
     model.learn(600)
     assert model._n_updates > 0
     assert any(not th.equal(initial[k], v) for k, v in net.lstm.state_dict().items())  # it learns
-    exe, _ = model._sample_execution(8)
+    exe, _ = model.replay_buffer.sample_execution(8, model._rng, episodes=model.execution_sampling == "episodes")
     with th.no_grad():
-        fused, fused_next = model._episode_embeddings(net, exe)
+        fused, fused_next = net._episode_inputs(exe)
         episodes, steps = exe.trajectories.numpy(), exe.steps.numpy()
         assert steps.max() > 2
         for e in range(8):
@@ -732,6 +739,8 @@ def test_exploration_time_input_is_an_option_fed_the_step_within_the_exploration
 
 
 def test_execution_buffers_saved_before_the_step_was_stored_load_with_step_zero():
+    from sb3_dream.dream.buffers import DreamReplayBuffer
+
     model = DREAM("MetaBus-v0", seed=0, **FAST)
     model.learn(100)
     buf = model.replay_buffer.execution
@@ -739,7 +748,8 @@ def test_execution_buffers_saved_before_the_step_was_stored_load_with_step_zero(
     restored = type(buf).__new__(type(buf))
     restored.__setstate__(saved)  # as pickle.load does
     assert restored.steps.shape == buf.actions.shape and not restored.steps.any()
-    assert restored.sample(4, model.replay_buffer.exploration, np.random.default_rng(0)).steps.tolist() == [0] * 4
+    replay = DreamReplayBuffer(model.replay_buffer.exploration, restored)
+    assert replay.sample_transitions(4, np.random.default_rng(0)).steps.tolist() == [0] * 4
 
 
 def test_bad_input():
@@ -849,7 +859,7 @@ def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, m
     def check_by_hand(gains) -> None:
         """Equation 5 on each trajectory alone (the function pads them into one batch)."""
         assert gains.problem_ids.tolist() == ids and gains.reward_penalty == c == 0.01
-        f = bus_model._encode(np.array(ids), noisy=False)
+        f = bus_model.encode(np.array(ids), noisy=False)
         for k, ((states, actions), rewards) in enumerate(zip(gains.trajectories, gains.rewards)):
             assert len(states) == len(actions) + 1 == len(rewards) + 1
             with th.no_grad():
@@ -885,7 +895,9 @@ def test_exploration_gains_reward_each_step_as_training_relabels_it(bus_model, m
     assert [a.tolist() for _, a in guided.trajectories] == [t["exploration_actions"] for t in oracle_played]
     # Random actions end the explorations at different steps: the padded batch still gives each its own.
     rng = np.random.default_rng(0)
-    monkeypatch.setattr(bus_model, "_epsilon_greedy", lambda greedy, eps, n: rng.integers(n, size=len(greedy)))
+    monkeypatch.setattr(
+        "sb3_dream.dream.acting.epsilon_greedy", lambda greedy, eps, n, _: rng.integers(n, size=len(greedy))
+    )
     random = exploration_gains(bus_model, "MetaBus-v0", n_trials=6, seed=7, problem_ids=ids, n_envs=3)
     assert len({len(r) for r in random.rewards}) > 1
     check_by_hand(random)
@@ -902,10 +914,10 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     assert d.return_g == pytest.approx(evaluate_meta(bus_model, "MetaBus-v0", n_trials=4, seed=7, problem_ids=ids).mean)
     assert d.decoder_error > 0 and d.n_trials == 4 and 1 <= d.exploration_length <= 20
     split_ids = gym.make("MetaBus-v0", split="test").unwrapped.problem_ids("test")
-    f = bus_model._encode(split_ids, noisy=False)
+    f = bus_model.encode(split_ids, noisy=False)
     brute = ((f[:, None] - f[None]) ** 2).sum(-1)
     assert d.f_spread == pytest.approx(brute.sum() / (len(f) * (len(f) - 1)), rel=1e-4)
-    f_ids = bus_model._encode(np.array(ids), noisy=False)
+    f_ids = bus_model.encode(np.array(ids), noisy=False)
     assert d.f_norm_sq == pytest.approx(float((f_ids**2).sum(1).mean()), rel=1e-5)
     # one entry per problem feature (colored permutation, four gray buses), each the variance of
     # the mean code of the problems that share the feature's value
@@ -946,10 +958,11 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     assert "with z = g of the optimal exploration" in d.returns_text()
 
     # A perfect decoder (g = f of the trial's problem): both runs act on the same z.
-    def perfect_decoder(state, idx, n):
-        return bus_model._encode(np.full(len(idx), 40), noisy=False)
+    def perfect_decoder(policy, state, idx, n):
+        return bus_model.encode(np.full(len(idx), 40), noisy=False)
 
-    monkeypatch.setattr(bus_model, "_decode", perfect_decoder)
+    monkeypatch.setattr("sb3_dream.dream.acting.decode", perfect_decoder)
+    monkeypatch.setattr("sb3_dream.dream.dream.decode", perfect_decoder)
     perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
     assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
     assert perfect.return_g == perfect.return_f
@@ -965,3 +978,56 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
     assert diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40]).return_f_noisy is None
     with pytest.raises(TypeError, match="model"):
         diagnose("not a model", "MetaBus-v0")
+
+
+def test_sb3_argument_names_keep_sb3s_meaning():
+    starts = {**FAST, "exploration_learning_starts": 1, "execution_learning_starts": 1}
+    model = DREAM("MetaBus-v0", seed=0, learning_starts=300, **starts)
+    model.learn(280)
+    assert model._n_updates == 0  # no update before learning_starts env steps
+    model.learn(200, reset_num_timesteps=False)
+    assert model._n_updates > 0
+    # gradient_steps updates of each part per train_freq env steps, whatever the number of envs
+    counts = []
+    for n_envs, gradient_steps in [(1, 1), (1, 2), (2, 1)]:
+        env = make_vec_env("MetaBus-v0", n_envs=n_envs, seed=0)
+        model = DREAM(env, seed=0, gradient_steps=gradient_steps, **starts)
+        model.learn(400)
+        counts.append(model._n_updates)
+    assert counts[1] == 2 * counts[0] and abs(counts[2] - counts[0]) <= 1 and counts[0] > 50
+    assert DREAM("MetaBus-v0", train_freq=(8, "step")).train_every == 8
+    with pytest.raises(ValueError, match="train_freq"):
+        DREAM("MetaBus-v0", train_freq=(1, "episode"))
+    for name, value, equivalent in [
+        ("exploration_fraction", 0.1, "eps_decay_steps"),
+        ("tau", 0.5, "target_update_interval"),
+        ("replay_buffer_class", None, "execution_buffer_size"),
+        ("action_noise", None, "epsilon-greedy"),
+    ]:
+        with pytest.raises(ValueError, match=f"SB3's '{name}'.*{equivalent}"):
+            DREAM("MetaBus-v0", **{name: value})
+    with pytest.raises(TypeError, match="learnin_starts"):
+        DREAM("MetaBus-v0", learnin_starts=100)
+    with pytest.raises(ValueError, match="learning_starts"):
+        DREAM("MetaBus-v0", learning_starts=-1)
+    with pytest.raises(ValueError, match="pass z_dim=8 to DREAM"):
+        DREAM("MetaBus-v0", policy_kwargs=dict(z_dim=8))
+
+
+def test_predict_without_state_in_execution_warns_once(bus_model):
+    import warnings
+
+    env = gym.make("MetaBus-v0")
+    obs, _ = env.reset(seed=0)
+    bus_model.predict(obs)  # an exploration step starts the trial: nothing is lost, no warning
+    while obs["phase"] == 0:
+        obs, *_ = env.step(0)
+    try:
+        with pytest.warns(UserWarning, match="without state"):
+            bus_model.predict(obs)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            bus_model.predict(obs)  # once only
+            bus_model.predict(obs, state=bus_model.new_trial_state(1).as_tuple())  # with a state: never
+    finally:
+        bus_model._warned_stateless_predict = False

@@ -538,3 +538,16 @@ def test_rl2dqn_consuming_final_obs_solves_the_bandit():
     result = evaluate_meta(model, "MetaBandit-v0", n_trials=100, split="test", env_kwargs=kwargs)
     assert result.mean >= 0.9
     assert result.mean_exploration_length == 1.0
+
+
+def test_sb3_argument_names_keep_sb3s_meaning():
+    model = RL2DQN("MetaBus-v0", seed=0, learning_starts=200, buffer_size=50, train_freq=(4, "step"))
+    assert (model.learning_starts, model.train_every, model.gradient_steps) == (200, 4, 1)
+    model.learn(200)
+    assert model._n_updates == 0  # none before learning_starts env steps
+    model.learn(200, reset_num_timesteps=False)
+    assert model._n_updates == 50  # then gradient_steps per train_freq env steps
+    with pytest.raises(ValueError, match="SB3's 'exploration_fraction'.*exploration_steps"):
+        RL2DQN("MetaBus-v0", exploration_fraction=0.1)
+    with pytest.raises(TypeError, match="learnin_starts"):
+        RL2DQN("MetaBus-v0", learnin_starts=100)

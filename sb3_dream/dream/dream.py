@@ -32,7 +32,7 @@ import pathlib
 import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
+from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
 
 import numpy as np
 import torch as th
@@ -48,7 +48,7 @@ from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent
 from dream_envs.checks import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
-from sb3_dream.dream import losses
+from sb3_dream.dream import losses, updates
 from sb3_dream.dream.acting import (
     REQUIRED_KEYS,
     DreamBatchTrialAgent,
@@ -59,13 +59,7 @@ from sb3_dream.dream.acting import (
     decode,
     model_states,
 )
-from sb3_dream.dream.buffers import (
-    DreamReplayBuffer,
-    ExecutionBatch,
-    ExecutionBuffer,
-    ExplorationBuffer,
-    TrajectoryBatch,
-)
+from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer
 from sb3_dream.dream.policies import DreamPolicy
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
@@ -151,17 +145,10 @@ class DREAM(TrialOffPolicyAlgorithm):
         execution transitions for a modest increase in its cost (the execution Q-network's passes
         grow, the decoder's do not; see docs/speed.md). The bottleneck and the decoder
         loss see the same ``batch_size`` trials either way.
-    :param policy_kwargs: :class:`DreamPolicy` options: ``execution_hidden_sizes`` (the execution
-        Q-network's body, the paper's ``(64,)``), ``execution_time_input`` (the execution Q also
-        sees the step within its episode, so a greedy policy need not repeat itself on a second
-        visit to a state; default False, the paper's network), ``execution_instruction_mlp``
-        (default True, the paper's network; False lets the execution Q compose unseen recipes from
-        their parts, see :class:`~sb3_dream.dream.policies.ExecutionQNetwork`),
-        ``execution_recurrent`` (default False, the paper's feed-forward network; True runs an LSTM
-        of 64 over each execution episode, as the authors' final code does, and needs
-        ``execution_sampling="episodes"``), ``execution_weight_decay`` (default 0, the paper's Adam; > 0 decays the execution
-        Q-network's weights, AdamW-style, see :class:`~sb3_dream.dream.policies.DreamPolicy`),
-        ``z_dim``.
+    :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
+        networks: ``execution_hidden_sizes``, ``execution_time_input``, ``exploration_time_input``,
+        ``execution_instruction_mlp``, ``execution_recurrent`` (needs
+        ``execution_sampling="episodes"``), ``execution_weight_decay`` and ``image_downsample``.
     """
 
     policy_aliases: ClassVar[Dict[str, Type[DreamPolicy]]] = {"DreamPolicy": DreamPolicy}
@@ -368,7 +355,7 @@ class DREAM(TrialOffPolicyAlgorithm):
         self._trial_state: Optional[TrialState] = None
 
     def _excluded_save_params(self) -> List[str]:
-        return [*super()._excluded_save_params(), "_trial_state", "_update_thread"]
+        return [*super()._excluded_save_params(), "_trial_state", "_update_thread", "_warned_stateless_predict"]
 
     def _get_torch_save_params(self) -> Tuple[List[str], List[str]]:
         return ["policy", "policy.optimizer", "policy.exploration_optimizer"], []
@@ -626,22 +613,12 @@ class DREAM(TrialOffPolicyAlgorithm):
         if execution_ready:
             exe, traj = buffers.sample_execution(batch_size, self._rng, episodes=self.execution_sampling == "episodes")
         if self.updates_in_parallel and exploration_ready and execution_ready:
-            return self._parallel_update(explored, exe, traj)
+            return updates.parallel_update(self, explored, exe, traj)
         if exploration_ready:
-            stats.update(self._exploration_update(explored, *self._reward_codes(explored)))
+            stats.update(updates.exploration_update(self, explored, *updates.reward_codes(self.policy, explored)))
         if execution_ready:
-            stats.update(self._execution_update(exe, traj))
+            stats.update(updates.execution_update(self, exe, traj))
         return stats
-
-    @th.no_grad()
-    def _reward_codes(self, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
-        """g of every prefix and f(T) for the exploration rewards: the current networks, as targets."""
-        return self.policy.decoder(traj.states, traj.actions), self.policy.encoder(traj.problem_features)
-
-    @th.no_grad()
-    def _target_decoder_z(self, traj: TrajectoryBatch) -> th.Tensor:
-        """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
-        return self.policy.decoder_target(traj.states, traj.actions, traj.lengths)
 
     @property
     def updates_in_parallel(self) -> bool:
@@ -650,110 +627,10 @@ class DREAM(TrialOffPolicyAlgorithm):
             return self.device.type == "cpu" and available_cores() > 1
         return bool(self.parallel_updates)
 
-    def _parallel_update(self, explored: TrajectoryBatch, exe: ExecutionBatch, traj: TrajectoryBatch) -> Dict[str, float]:
-        """``parallel_updates``: the no-gradient passes and the exploration update run in a second
-        thread beside the execution update, with the same inputs, so with the same results.
-
-        The worker runs, in order, the target decoder's pass for the execution targets (with
-        ``execution_target_z="own"``), the reward pass of the current f and g over the exploration
-        batch, and the exploration DDQN step. The execution update waits for the first before its
-        targets, and for the second before its optimizer step changes f and g.
-        """
-        if self._update_thread is None:
-            self._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
-        worker = self._update_thread
-        target_z_g = worker.submit(self._target_decoder_z, traj) if self.execution_target_z == "own" else None
-        codes = worker.submit(self._reward_codes, explored)
-        exploration = worker.submit(lambda: self._exploration_update(explored, *codes.result()))
-        stats = self._execution_update(
-            exe, traj, target_z_g=None if target_z_g is None else target_z_g.result, before_step=codes.result
-        )
-        return {**exploration.result(), **stats}
-
-    def _execution_update(
-        self,
-        exe: ExecutionBatch,
-        traj: TrajectoryBatch,
-        target_z_g: Optional[Callable[[], th.Tensor]] = None,
-        before_step: Optional[Callable[[], Any]] = None,
-    ) -> Dict[str, float]:
-        """One step on the execution DDQN with z from g and from F, the bottleneck and the decoder
-        loss (Equations 2-4), all on the same execution samples (Appendix A).
-
-        One decoder pass gives g of every prefix of the batch's trajectories ``traj``; transition j
-        reads trajectory ``exe.trajectories[j]``. ``target_z_g`` gives the target decoder's z when
-        another thread computes it; ``before_step`` is called before the optimizer changes the networks.
-        """
-        policy, net = self.policy, self.policy.execution_q
-        g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix in one pass
-        f = policy.encoder(traj.problem_features)  # [N, z]
-        owner = exe.trajectories
-        z_g = g_all[th.arange(len(g_all), device=self.device), traj.lengths][owner]  # g(tau^exp) of each trial
-        z_f = self.sample_encoder_z(f[owner])
-
-        # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
-        z = th.cat([z_g, z_f])
-        inputs, next_inputs = net.transition_inputs(exe)
-        q = net.q_values(inputs.repeat(2, 1), z).gather(1, exe.actions.repeat(2)[:, None]).squeeze(1)
-        with th.no_grad():
-            next_online = net.q_values(next_inputs.repeat(2, 1), z)
-            z_f_target = policy.encoder_target(traj.problem_features)[owner]
-            if self.execution_target_z == "own":
-                z_g_target = target_z_g() if target_z_g is not None else self._target_decoder_z(traj)
-                z_target = th.cat([z_g_target[owner], z_f_target])
-            else:  # "encoder": the authors' code, no decoder pass
-                z_target = z_f_target.repeat(2, 1)
-            target_net = policy.execution_q_target
-            next_target = target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
-        loss_traj, loss_prob = losses.execution_td_losses(
-            q, next_online, next_target, exe.rewards.repeat(2), exe.dones.repeat(2), self.gamma, len(exe.actions)
-        )
-        bottleneck = losses.bottleneck_loss(f, self.bottleneck_threshold) if self.bottleneck else f.new_zeros(())
-        decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
-
-        loss = loss_traj + loss_prob + self.bottleneck_weight * bottleneck + decoder_loss
-        policy.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        params = [p for group in policy.optimizer.param_groups for p in group["params"]]
-        th.nn.utils.clip_grad_norm_(params, self.max_grad_norm)
-        if before_step is not None:
-            before_step()
-        policy.optimizer.step()
-        return {
-            "execution_loss_traj": loss_traj.item(),
-            "execution_loss_prob": loss_prob.item(),
-            "execution_q_mean": q.mean().item(),
-            "decoder_loss": decoder_loss.item(),
-            "f_norm_sq": f.pow(2).sum(dim=1).mean().item(),
-            "bottleneck_loss": float(bottleneck.item()),
-        }
 
     def exploration_rewards(self, g: th.Tensor, f: th.Tensor, lengths: th.Tensor) -> th.Tensor:
         """Equation 5 with this model's c (:func:`sb3_dream.dream.losses.exploration_rewards`)."""
         return losses.exploration_rewards(g, f, lengths, self.reward_penalty)
-
-    def _exploration_update(self, traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor) -> Dict[str, float]:
-        """One step on the exploration DDQN over whole trajectories (fused LSTM unroll), with the
-        rewards of Equation 5 recomputed from the current f and g (``g``, ``f``)."""
-        policy = self.policy
-        rewards = self.exploration_rewards(g, f, traj.lengths)  # [B, T]
-        clock = None  # the step of each state within its exploration episode, with exploration_time_input
-        if policy.exploration_time_input:
-            clock = th.arange(traj.actions.shape[1] + 1, device=self.device).expand(len(traj.actions), -1)
-        inputs = (traj.states, traj.prev_actions, traj.prev_rewards, None, clock)
-        q_all, _ = policy.exploration_q(*inputs)  # [B, T+1, A]
-        with th.no_grad():
-            q_target_all, _ = policy.exploration_q_target(*inputs)
-        loss, q, valid = losses.exploration_td_loss(q_all, q_target_all, traj.actions, rewards, traj.lengths, self.gamma)
-        policy.exploration_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        th.nn.utils.clip_grad_norm_(policy.exploration_q.parameters(), self.max_grad_norm)
-        policy.exploration_optimizer.step()
-        return {
-            "exploration_loss": loss.item(),
-            "exploration_q_mean": ((q * valid).sum() / valid.sum()).item(),
-            "exploration_reward": ((rewards * valid).sum() / valid.sum()).item(),
-        }
 
     # ------------------------------------------------------------------ logging
     def dump_logs(self) -> None:

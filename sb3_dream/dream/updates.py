@@ -1,0 +1,142 @@
+"""One gradient step of each of DREAM's parts (Algorithm 1, lines 14-21): the networks' passes over
+a sampled batch, the losses of :mod:`sb3_dream.dream.losses`, and the optimizer steps.
+
+* :func:`execution_update`: the execution DDQN with z from the decoder and from the encoder, the
+  bottleneck and the decoder regression, all on the same execution samples, one optimizer step;
+* :func:`exploration_update`: the exploration DDQN over whole trajectories on the
+  information-gain rewards, recomputed from the current f and g (:func:`reward_codes`);
+* :func:`parallel_update`: both, the exploration step in a second thread (same results).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Tuple
+
+import torch as th
+
+from sb3_dream.dream import losses
+from sb3_dream.dream.buffers import ExecutionBatch, TrajectoryBatch
+from sb3_dream.dream.policies import DreamPolicy
+
+if TYPE_CHECKING:
+    from sb3_dream.dream.dream import DREAM
+
+
+@th.no_grad()
+def reward_codes(policy: DreamPolicy, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
+    """g of every prefix and f(T) for the exploration rewards: the current networks, as targets."""
+    return policy.decoder(traj.states, traj.actions), policy.encoder(traj.problem_features)
+
+
+@th.no_grad()
+def target_decoder_z(policy: DreamPolicy, traj: TrajectoryBatch) -> th.Tensor:
+    """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
+    return policy.decoder_target(traj.states, traj.actions, traj.lengths)
+
+
+def execution_update(
+    model: "DREAM",
+    exe: ExecutionBatch,
+    traj: TrajectoryBatch,
+    target_z_g: Optional[Callable[[], th.Tensor]] = None,
+    before_step: Optional[Callable[[], Any]] = None,
+) -> Dict[str, float]:
+    """One step on the execution DDQN with z from g and from F, the bottleneck and the decoder loss
+    (Equations 2-4), all on the same execution samples (Appendix A).
+
+    One decoder pass gives g of every prefix of the batch's trajectories ``traj``; transition j
+    reads trajectory ``exe.trajectories[j]``. ``target_z_g`` gives the target decoder's z when
+    another thread computes it; ``before_step`` is called before the optimizer changes the networks.
+    """
+    policy, net = model.policy, model.policy.execution_q
+    g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix in one pass
+    f = policy.encoder(traj.problem_features)  # [N, z]
+    owner = exe.trajectories
+    z_g = g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner]  # g(tau^exp) of each trial
+    z_f = model.sample_encoder_z(f[owner])
+
+    # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
+    z = th.cat([z_g, z_f])
+    inputs, next_inputs = net.transition_inputs(exe)
+    q = net.q_values(inputs.repeat(2, 1), z).gather(1, exe.actions.repeat(2)[:, None]).squeeze(1)
+    with th.no_grad():
+        next_online = net.q_values(next_inputs.repeat(2, 1), z)
+        z_f_target = policy.encoder_target(traj.problem_features)[owner]
+        if model.execution_target_z == "own":
+            z_g_target = target_z_g() if target_z_g is not None else target_decoder_z(policy, traj)
+            z_target = th.cat([z_g_target[owner], z_f_target])
+        else:  # "encoder": the authors' code, no decoder pass
+            z_target = z_f_target.repeat(2, 1)
+        target_net = policy.execution_q_target
+        next_target = target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
+    loss_traj, loss_prob = losses.execution_td_losses(
+        q, next_online, next_target, exe.rewards.repeat(2), exe.dones.repeat(2), model.gamma, len(exe.actions)
+    )
+    bottleneck = losses.bottleneck_loss(f, model.bottleneck_threshold) if model.bottleneck else f.new_zeros(())
+    decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
+
+    loss = loss_traj + loss_prob + model.bottleneck_weight * bottleneck + decoder_loss
+    policy.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    params = [p for group in policy.optimizer.param_groups for p in group["params"]]
+    th.nn.utils.clip_grad_norm_(params, model.max_grad_norm)
+    if before_step is not None:
+        before_step()
+    policy.optimizer.step()
+    return {
+        "execution_loss_traj": loss_traj.item(),
+        "execution_loss_prob": loss_prob.item(),
+        "execution_q_mean": q.mean().item(),
+        "decoder_loss": decoder_loss.item(),
+        "f_norm_sq": f.pow(2).sum(dim=1).mean().item(),
+        "bottleneck_loss": float(bottleneck.item()),
+    }
+
+
+def exploration_update(model: "DREAM", traj: TrajectoryBatch, g: th.Tensor, f: th.Tensor) -> Dict[str, float]:
+    """One step on the exploration DDQN over whole trajectories (fused LSTM unroll), with the
+    rewards of Equation 5 from the current f and g (``g``, ``f`` from :func:`reward_codes`)."""
+    policy = model.policy
+    rewards = losses.exploration_rewards(g, f, traj.lengths, model.reward_penalty)  # [B, T]
+    clock = None  # the step of each state within its exploration episode, with exploration_time_input
+    if policy.exploration_time_input:
+        clock = th.arange(traj.actions.shape[1] + 1, device=rewards.device).expand(len(traj.actions), -1)
+    inputs = (traj.states, traj.prev_actions, traj.prev_rewards, None, clock)
+    q_all, _ = policy.exploration_q(*inputs)  # [B, T+1, A]
+    with th.no_grad():
+        q_target_all, _ = policy.exploration_q_target(*inputs)
+    loss, q, valid = losses.exploration_td_loss(q_all, q_target_all, traj.actions, rewards, traj.lengths, model.gamma)
+    policy.exploration_optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    th.nn.utils.clip_grad_norm_(policy.exploration_q.parameters(), model.max_grad_norm)
+    policy.exploration_optimizer.step()
+    return {
+        "exploration_loss": loss.item(),
+        "exploration_q_mean": ((q * valid).sum() / valid.sum()).item(),
+        "exploration_reward": ((rewards * valid).sum() / valid.sum()).item(),
+    }
+
+
+def parallel_update(
+    model: "DREAM", explored: TrajectoryBatch, exe: ExecutionBatch, traj: TrajectoryBatch
+) -> Dict[str, float]:
+    """``parallel_updates``: the no-gradient passes and the exploration update run in a second
+    thread beside the execution update, with the same inputs, so with the same results.
+
+    The worker runs, in order, the target decoder's pass for the execution targets (with
+    ``execution_target_z="own"``), the reward pass of the current f and g over the exploration
+    batch, and the exploration DDQN step. The execution update waits for the first before its
+    targets, and for the second before its optimizer step changes f and g (their networks and
+    optimizers are otherwise disjoint).
+    """
+    if model._update_thread is None:
+        model._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
+    worker, policy = model._update_thread, model.policy
+    target_z_g = worker.submit(target_decoder_z, policy, traj) if model.execution_target_z == "own" else None
+    codes = worker.submit(reward_codes, policy, explored)
+    exploration = worker.submit(lambda: exploration_update(model, explored, *codes.result()))
+    stats = execution_update(
+        model, exe, traj, target_z_g=None if target_z_g is None else target_z_g.result, before_step=codes.result
+    )
+    return {**exploration.result(), **stats}
