@@ -33,6 +33,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dream import DREAM
+from sb3_dream.dream import updates
 
 
 def timed(obj, name: str, totals: dict, key: str, device: th.device) -> None:
@@ -218,16 +219,18 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
         return result
 
     for i in range(n_updates):  # the order of DREAM._update with parallel_updates
-        explored = buffers.exploration.get(model._rng.integers(len(buffers.exploration), size=model.batch_size))
-        exe, traj = model._sample_execution(model.batch_size)
+        explored = buffers.sample_trajectories(model.batch_size, model._rng)
+        exe, traj = buffers.sample_execution(
+            model.batch_size, model._rng, episodes=model.execution_sampling == "episodes"
+        )
         # Every 10th update is counted instead of timed (the counter slows what it counts); each
         # part runs once either way, so the networks follow the same updates.
         part = counted_part if i % 10 == 9 else timed_part
-        z = part("worker: target decoder's z", lambda: model._target_decoder_z(traj)) if own else None
-        codes = part("worker: reward pass (f, g)", lambda: model._reward_codes(explored))
-        part("worker: exploration update", lambda: model._exploration_update(explored, *codes))
+        z = part("worker: target decoder's z", lambda: updates.target_decoder_z(model.policy, traj)) if own else None
+        codes = part("worker: reward pass (f, g)", lambda: updates.reward_codes(model.policy, explored))
+        part("worker: exploration update", lambda: updates.exploration_update(model, explored, *codes))
         target = None if z is None else (lambda: z)
-        part("main: execution losses + step", lambda: model._execution_losses(exe, traj, target_z_g=target))
+        part("main: execution losses + step", lambda: updates.execution_update(model, exe, traj, target_z_g=target))
     print(f"ms per part on {env_id} ({variant}), median of {n_updates} updates, one thread")
     print(f"{'':>32}{'ms':>8}{'GFLOP':>8}{'GFLOP/s':>9}")
     ms = {k: statistics.median(v) for k, v in times.items()}
