@@ -1,14 +1,14 @@
 """Read a learning curve the way the results record does: per window, first crossings.
 
 Single greedy evaluations of a value-based agent swing (a 100-trial evaluation's 95% interval is
-about ±0.2 on MetaCook), so the record in ``docs/results.md`` describes a run by the mean and the
+about ±0.2 on MetaCook), so the record in ``docs/results/`` describes a run by the mean and the
 median of its evaluations over windows of env steps, by the first evaluation at or above a
 return, and by how many evaluations in a window reach it. This module computes those numbers
 from the runner's curve CSVs (finished ``*.csv``, stopped ``*_stopped_at_*.csv`` or a run still
 going, ``*.csv.partial``), so that each one in the record can be reproduced::
 
-    python -m sb3_dream.curves results/cook_wd/MetaCook-v0/dream_seed2.csv \\
-        results/cook_256_c001/MetaCook-v0/dream_seed2.csv --window 100000 --threshold 0.3
+    python -m sb3_dream.curves results/cook_wd_lr1e5/MetaCook-v0/dream_seed2.csv \\
+        results/cook_256_c001_lr1e5/MetaCook-v0/dream_seed2.csv --window 100000 --threshold 0.3
 
 A window ``(a, b]`` holds the evaluations after ``a`` env steps up to and including ``b`` (the
 evaluation at 0 steps, before any training, counts in none), so "300K-400K" is the ten

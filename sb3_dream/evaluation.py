@@ -350,8 +350,8 @@ class MetaEvalCallback(BaseCallback):
         held-out return stays an honest estimate.
     :param best_ties: which of several evaluations with the same best return keeps the model:
         ``"first"`` (SB3's ``EvalCallback``: a later one must beat it) or ``"last"`` (the latest of
-        them). On a split the agent saturates (MetaCook's training split at the oracle's return from
-        about 730K env steps) the first is an early model; the latest has trained longest.
+        them). On a split the agent saturates (e.g. at the oracle's return) the first is an early model; the
+        latest has trained longest.
     :param exhaustive: every evaluation plays all of the split's (problem, instruction) pairs and
         weights them by their probability (see :func:`evaluate_meta`): the curve then shows the
         split's expected return, not a 100-trial draw's (``n_trials`` is then a minimum: whole

@@ -143,8 +143,8 @@ class ImageEmbedder(nn.Module):
     ReLU follows every layer (the paper says "in between" the convolutions; a ReLU after the last
     convolution and after the linear layer makes the stack a proper nonlinear feature extractor).
 
-    The convolutions run on channels-last tensors: the same arithmetic, and on a CPU (oneDNN) about
-    1.5x faster than channel-first for these frames, forward and backward.
+    The convolutions run on channels-last tensors: the same arithmetic, and on a CPU (oneDNN) faster
+    than channel-first for these frames, forward and backward (``benchmarks/image_embedder_speed.py``).
 
     ``downsample`` > 1 (an option; the paper's CNN sees the full frame) average-pools each frame by
     that factor before the convolutions (2: 80 x 60 -> 40 x 30), which cuts the convolutions'
