@@ -20,6 +20,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dream import DREAM, RL2DQN
+from test_dream import FAST
 
 RECORDED_ON = ("2.13.0", "x86_64")
 on_recorded_stack = pytest.mark.skipif(
@@ -46,15 +47,7 @@ def digest(model, env_id: str, **env_kwargs) -> str:
     return h.hexdigest()[:16]
 
 
-DREAM_SHORT = dict(
-    exploration_learning_starts=20,
-    execution_learning_starts=20,
-    eps_decay_steps=1000,
-    target_update_interval=100,
-    buffer_size=500,
-    execution_buffer_size=2000,
-    parallel_updates=False,
-)
+DREAM_SHORT = {**FAST, "parallel_updates": False}
 
 
 @on_recorded_stack
