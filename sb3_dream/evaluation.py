@@ -19,87 +19,9 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 import dream_envs
-from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent, play_trials, play_trials_batched
+from dream_envs import play_trials, play_trials_batched
 from dream_envs.checks import check_choice, check_positive_int
-
-
-class PolicyBatchAgent(BatchTrialAgent):
-    """Plays an SB3 model through ``predict(obs, state, episode_start, deterministic)`` in
-    ``n_envs`` trial envs side by side.
-
-    Each slot's recurrent state is reset at its trial's start (``episode_start`` set on the
-    trial's first step) and carried across the trial's inner episodes.
-    """
-
-    def __init__(self, model: Any, deterministic: bool = True) -> None:
-        self.model, self.deterministic = model, deterministic
-        self.reset(1)
-
-    def reset(self, n_envs: int) -> None:
-        self.state: Any = None
-        self.episode_start = np.ones(n_envs, dtype=bool)
-
-    def start_trials(self, idx: np.ndarray) -> None:
-        self.episode_start[idx] = True
-
-    def observation(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> Dict[str, np.ndarray]:
-        """What ``predict`` is given (a hook: a model may read more of ``info``)."""
-        return obs
-
-    def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
-        action, self.state = self.model.predict(
-            self.observation(obs, infos),
-            state=self.state,
-            episode_start=self.episode_start.copy(),
-            deterministic=self.deterministic,
-        )
-        self.episode_start[:] = False
-        return np.asarray(action).reshape(-1)
-
-
-class PolicyAgent(SingleTrialAgent):
-    """:class:`PolicyBatchAgent` one trial at a time (a :class:`~dream_envs.ScriptedAgent`)."""
-
-    def __init__(self, model: Any, deterministic: bool = True) -> None:
-        super().__init__(PolicyBatchAgent(model, deterministic))
-
-
-def _not_an_agent(agent: Any) -> TypeError:
-    return TypeError(
-        "agent must be a dream_envs.ScriptedAgent, a dream_envs.BatchTrialAgent or a model with predict(), "
-        f"got {type(agent).__name__}"
-    )
-
-
-def as_trial_agent(agent: Any, deterministic: bool = True) -> ScriptedAgent:
-    """A :class:`~dream_envs.ScriptedAgent` for ``agent``: itself if it is one, a
-    :class:`~dream_envs.BatchTrialAgent` playing one trial at a time, the model's own
-    ``as_trial_agent(deterministic)`` if it defines one (a model that uses ``info["final_obs"]``),
-    else a :class:`PolicyAgent` around ``predict``."""
-    if isinstance(agent, ScriptedAgent):
-        return agent
-    if isinstance(agent, BatchTrialAgent):
-        return SingleTrialAgent(agent)
-    if hasattr(agent, "as_trial_agent"):
-        return agent.as_trial_agent(deterministic=deterministic)
-    if hasattr(agent, "predict"):
-        return PolicyAgent(agent, deterministic=deterministic)
-    raise _not_an_agent(agent)
-
-
-def as_batch_trial_agent(agent: Any, deterministic: bool = True) -> Optional[BatchTrialAgent]:
-    """A :class:`~dream_envs.BatchTrialAgent` for ``agent``, or None where it plays one trial at a
-    time (a :class:`~dream_envs.ScriptedAgent`): itself if it is one, the model's own
-    ``as_batch_trial_agent(deterministic)`` if it defines one, else a :class:`PolicyBatchAgent`."""
-    if isinstance(agent, BatchTrialAgent):
-        return agent
-    if isinstance(agent, ScriptedAgent):
-        return None
-    if hasattr(agent, "as_batch_trial_agent"):
-        return agent.as_batch_trial_agent(deterministic=deterministic)
-    if hasattr(agent, "predict"):
-        return PolicyBatchAgent(agent, deterministic=deterministic)
-    raise _not_an_agent(agent)
+from sb3_dream.common.agents import as_batch_trial_agent, as_trial_agent
 
 
 @dataclass

@@ -7,14 +7,8 @@ import pytest
 
 import dream_envs
 from dream_envs import RandomAgent
-from sb3_dream.evaluation import (
-    MetaEvalCallback,
-    MetaEvalResult,
-    PolicyAgent,
-    PolicyBatchAgent,
-    as_trial_agent,
-    evaluate_meta,
-)
+from sb3_dream.common.agents import PolicyAgent, PolicyBatchAgent
+from sb3_dream.evaluation import MetaEvalCallback, MetaEvalResult, as_trial_agent, evaluate_meta
 
 
 class FirstActionModel:

@@ -11,13 +11,14 @@ last state from ``info["final_obs"]``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Dict, Sequence, Tuple
+import warnings
+from typing import TYPE_CHECKING, Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
 
-from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, SingleTrialAgent
+from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent, SingleTrialAgent
 from sb3_dream.dream.policies import DreamPolicy
 
 if TYPE_CHECKING:
@@ -190,6 +191,115 @@ def act(
             state.execution_hidden[0][:, execute], state.execution_hidden[1][:, execute] = hidden
         actions[execute] = epsilon_greedy(q.argmax(dim=-1).cpu().numpy(), execution_eps, n_actions, rng)
     return actions
+
+
+class DreamActing:
+    """How DREAM acts in trials: the epsilons, z from the encoder or the decoder, the end of an
+    exploration episode, ``predict`` and the meta-test agents. Part of :class:`~sb3_dream.DREAM`
+    (which provides the networks, the counters and the hyperparameters these read)."""
+
+    policy: DreamPolicy
+    _warned_stateless_predict = False
+
+    def new_trial_state(self, n_envs: int) -> TrialState:
+        """The acting state of ``n_envs`` trials that have not started."""
+        state_dtype = self.replay_buffer.exploration.states.dtype
+        return TrialState.zeros(self.policy, n_envs, self.exploration_horizon, state_dtype)
+
+    @property
+    def exploration_epsilon(self) -> float:
+        """Epsilon of the exploration policy (decays with exploration-episode steps)."""
+        return self._epsilon_schedule(self._n_exploration_steps)
+
+    @property
+    def execution_epsilon(self) -> float:
+        """Epsilon of the execution policy (decays with execution-episode steps)."""
+        return self._execution_epsilon_schedule(self._n_execution_steps)
+
+    @property
+    def encoder_noise(self) -> bool:
+        """Whether z from the encoder is noisy: with the bottleneck and rho^2 > 0."""
+        return self.bottleneck and self.encoder_variance > 0
+
+    def sample_encoder_z(self, f: th.Tensor, generator: Optional[th.Generator] = None) -> th.Tensor:
+        """z ~ F(z | T) = N(f(T), rho^2 I) where the encoder is noisy (Equation 2's f branch), else f;
+        the noise from ``generator`` (default: torch's global one)."""
+        if not self.encoder_noise:
+            return f
+        noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
+        return f + noise * float(np.sqrt(self.encoder_variance))
+
+    @th.no_grad()
+    def encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
+        """The encoder's z of problems ``problem_ids``: sampled from F(z | T) if ``noisy``, else f(T)."""
+        f = self.policy.encoder(th.as_tensor(self.problem_table[problem_ids], device=self.device))
+        return (self.sample_encoder_z(f, generator) if noisy else f).cpu().numpy()
+
+    def end_exploration(
+        self, state: TrialState, idx: np.ndarray, final_obs: np.ndarray, problem_ids: Optional[np.ndarray] = None
+    ) -> None:
+        """Close the exploration episodes of envs ``idx`` with their last states ``final_obs`` and set z.
+
+        With ``problem_ids`` (training) the trajectories are stored and z alternates between the
+        encoder and the decoder per trial; without (meta-test) z = g(tau^exp).
+        """
+        state.states[idx, state.length[idx]] = model_states(final_obs, self.observation_space["obs"])
+        use_encoder = np.zeros(len(idx), dtype=bool)
+        if problem_ids is not None:  # training: store tau^exp; z from the encoder on alternate trials
+            self._store_explorations(state, idx, problem_ids)
+            use_encoder = self._z_from_encoder[idx]
+        z = decode(self.policy, state, idx, state.length[idx])
+        if use_encoder.any():
+            z[use_encoder] = self.encode(problem_ids[use_encoder], noisy=True)
+        state.z[idx], state.z_ready[idx] = z, True
+
+    def predict(
+        self,
+        observation: Dict[str, np.ndarray],
+        state: Optional[Tuple[np.ndarray, ...]] = None,
+        episode_start: Optional[np.ndarray] = None,
+        deterministic: bool = False,
+    ) -> Tuple[np.ndarray, Tuple[np.ndarray, ...]]:
+        """Act at meta-test, following the sb3-contrib recurrent convention.
+
+        ``state`` carries the trial: the exploration LSTM state, the exploration trajectory and,
+        once exploration is over, z = g(tau^exp); it is reset where ``episode_start`` (a new
+        trial) is set. Pass back the state each call returns: without it every call starts a new
+        trial (a warning says so once). ``deterministic=False`` acts epsilon-greedily with the
+        current epsilons. ``predict`` sees observations only, so the exploration episode's last
+        state (in ``info["final_obs"]``) is not available to the decoder here;
+        :meth:`as_trial_agent` (used by :func:`sb3_dream.evaluation.evaluate_meta`) passes it.
+        """
+        self.policy.set_training_mode(False)
+        obs, vectorized = batch_observation(observation, self.policy)
+        n = len(obs["phase"])
+        if state is None:
+            if np.any(np.asarray(obs["phase"]) != EXPLORATION) and not self._warned_stateless_predict:
+                self._warned_stateless_predict = True
+                warnings.warn(
+                    "DREAM.predict was called without state in an execution episode: the state carries the "
+                    "trial's exploration trajectory, from which the execution policy's z is decoded, so without "
+                    "it execution acts on an empty exploration. Pass the state returned by the previous call.",
+                    stacklevel=2,
+                )
+            trial = self.new_trial_state(n)
+        else:
+            trial = TrialState.from_tuple(state, self.device)
+        starts = np.ones(n, bool) if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(n)
+        if state is None:
+            starts[:] = True
+        trial.reset(np.flatnonzero(starts))
+        eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
+        actions = act(self.policy, obs, trial, *eps, self._rng)
+        return (actions if vectorized else actions[0:1].reshape(())), trial.as_tuple()
+
+    def as_trial_agent(self, deterministic: bool = True) -> ScriptedAgent:
+        """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
+        return DreamTrialAgent(self, deterministic)
+
+    def as_batch_trial_agent(self, deterministic: bool = True) -> BatchTrialAgent:
+        """:meth:`as_trial_agent` for trials played side by side (see :mod:`sb3_dream.evaluation`)."""
+        return DreamBatchTrialAgent(self, deterministic)
 
 
 class DreamBatchTrialAgent(BatchTrialAgent):

@@ -29,7 +29,6 @@ from __future__ import annotations
 import io
 import os
 import pathlib
-import warnings
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, ClassVar, Dict, List, Optional, Tuple, Type, TypeVar, Union
@@ -44,21 +43,12 @@ from stable_baselines3.common.save_util import load_from_pkl
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import safe_mean
 
-from dream_envs import EXECUTION, EXPLORATION, BatchTrialAgent, ScriptedAgent
+from dream_envs import EXECUTION, EXPLORATION
 from dream_envs.checks import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream import losses, updates
-from sb3_dream.dream.acting import (
-    REQUIRED_KEYS,
-    DreamBatchTrialAgent,
-    DreamTrialAgent,
-    TrialState,
-    act,
-    batch_observation,
-    decode,
-    model_states,
-)
+from sb3_dream.dream.acting import REQUIRED_KEYS, DreamActing, TrialState, act, model_states
 from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer
 from sb3_dream.dream.policies import DreamPolicy
 
@@ -77,7 +67,7 @@ def available_cores() -> int:
     return os.cpu_count() or 1
 
 
-class DREAM(TrialOffPolicyAlgorithm):
+class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     """DREAM for trial envs (:mod:`dream_envs`), following the paper's Algorithm 1 and Appendix B.
 
     Defaults are the paper's (Table 1 and Appendix B.4); where the paper is silent, the authors'
@@ -122,29 +112,18 @@ class DREAM(TrialOffPolicyAlgorithm):
         horizon is terminal for the TD targets, as an episode "done" in the authors' DQN: the grid
         worlds' episodes *are* 20 steps long and their states hold no clock. True bootstraps there,
         treating the horizon as a time limit (SB3's ``handle_timeout_termination``).
-    :param parallel_updates: run each step's exploration update, with the no-gradient passes
-        (the exploration rewards' f and g, the target decoder's z), in a second thread while this
-        one runs the execution update (their networks and optimizers are disjoint once the rewards
-        are computed; the execution step waits for that). The same computations and the same
-        results as sequential updates (tested), so it changes the speed only: faster
-        when a second CPU core is free for this run (measured in docs/speed.md), slower when it is not (several runs sharing the cores: the experiment runner
-        turns it off when it runs more than one at once). ``"auto"`` (default): on when the
+    :param parallel_updates: run each step's exploration update (with the no-gradient passes it
+        needs) in a second thread beside the execution update: the same results (tested), faster
+        with a free second core, slower without (docs/speed.md). ``"auto"`` (default): on when the
         networks are on the CPU and this process may run on more than one core.
-    :param execution_target_z: the z the execution Q's double-DQN target conditions on. ``"own"``
-        (default): each loss's own source through the target networks, the target decoder's
-        g(tau^exp) for the loss with z from g and the target encoder's f(T) for the loss with z from
-        f. ``"encoder"``: the target encoder's f(T) for both, as in the authors' code (their target
-        network always embedded the problem ID); it saves the target decoder's LSTM pass over the
-        execution batch's trajectories (see docs/speed.md).
-    :param execution_sampling: what one execution update learns from. ``"transitions"`` (default,
-        the paper's Algorithm 1): ``batch_size`` transitions drawn uniformly from B_exe, each with
-        its own trial's exploration trajectory. ``"episodes"`` (the authors' code, which samples its
-        replay as whole episodes): ``batch_size`` execution episodes drawn uniformly, every stored
-        transition of each; the decoder still reads ``batch_size`` trajectories (one per episode,
-        shared by its transitions), so an update learns from up to the horizon's length times more
-        execution transitions for a modest increase in its cost (the execution Q-network's passes
-        grow, the decoder's do not; see docs/speed.md). The bottleneck and the decoder
-        loss see the same ``batch_size`` trials either way.
+    :param execution_target_z: the z the execution Q's double-DQN target conditions on: ``"own"``
+        (default), each loss's own source through the target networks (target decoder for z = g,
+        target encoder for z from F); ``"encoder"``, the target encoder's f(T) for both, as in the
+        authors' code, which saves the target decoder's pass.
+    :param execution_sampling: what one execution update learns from: ``"transitions"`` (default,
+        Algorithm 1), ``batch_size`` transitions drawn uniformly from B_exe; ``"episodes"`` (the
+        authors' code), every transition of ``batch_size`` execution episodes. The decoder, the
+        bottleneck and the decoder loss read ``batch_size`` trials either way.
     :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
         networks: ``execution_hidden_sizes``, ``execution_time_input``, ``exploration_time_input``,
         ``execution_instruction_mlp``, ``execution_recurrent`` (needs
@@ -369,121 +348,22 @@ class DREAM(TrialOffPolicyAlgorithm):
         buffer.device = self.device
         self.replay_buffer = buffer
 
-    def new_trial_state(self, n_envs: int) -> TrialState:
-        """The acting state of ``n_envs`` trials that have not started."""
-        state_dtype = self.replay_buffer.exploration.states.dtype
-        return TrialState.zeros(self.policy, n_envs, self.exploration_horizon, state_dtype)
-
-    # ------------------------------------------------------------------ epsilons and codes
-    @property
-    def exploration_epsilon(self) -> float:
-        """Epsilon of the exploration policy (decays with exploration-episode steps)."""
-        return self._epsilon_schedule(self._n_exploration_steps)
-
-    @property
-    def execution_epsilon(self) -> float:
-        """Epsilon of the execution policy (decays with execution-episode steps)."""
-        return self._execution_epsilon_schedule(self._n_execution_steps)
-
-    @property
-    def encoder_noise(self) -> bool:
-        """Whether z from the encoder is noisy: with the bottleneck and rho^2 > 0."""
-        return self.bottleneck and self.encoder_variance > 0
-
-    def sample_encoder_z(self, f: th.Tensor, generator: Optional[th.Generator] = None) -> th.Tensor:
-        """z ~ F(z | T) = N(f(T), rho^2 I) where the encoder is noisy (Equation 2's f branch), else f;
-        the noise from ``generator`` (default: torch's global one)."""
-        if not self.encoder_noise:
-            return f
-        noise = th.randn(f.shape, generator=generator, dtype=f.dtype, device=f.device)
-        return f + noise * float(np.sqrt(self.encoder_variance))
-
-    @th.no_grad()
-    def encode(self, problem_ids: np.ndarray, noisy: bool, generator: Optional[th.Generator] = None) -> np.ndarray:
-        """The encoder's z of problems ``problem_ids``: sampled from F(z | T) if ``noisy``, else f(T)."""
-        f = self.policy.encoder(th.as_tensor(self.problem_table[problem_ids], device=self.device))
-        return (self.sample_encoder_z(f, generator) if noisy else f).cpu().numpy()
-
-    # ------------------------------------------------------------------ acting
-    def end_exploration(
-        self, state: TrialState, idx: np.ndarray, final_obs: np.ndarray, problem_ids: Optional[np.ndarray] = None
-    ) -> None:
-        """Close the exploration episodes of envs ``idx`` with their last states ``final_obs`` and set z.
-
-        With ``problem_ids`` (training) the trajectories are stored and z alternates between the
-        encoder and the decoder per trial; without (meta-test) z = g(tau^exp).
-        """
-        state.states[idx, state.length[idx]] = model_states(final_obs, self.observation_space["obs"])
-        use_encoder = np.zeros(len(idx), dtype=bool)
-        if problem_ids is not None:
-            assert self._z_from_encoder is not None
-            use_encoder = self._z_from_encoder[idx]
-            for k, e in enumerate(idx):
-                slot, generation = self.replay_buffer.exploration.add(
-                    state.states[e],
-                    state.actions[e],
-                    state.prev_actions[e],
-                    state.prev_rewards[e],
-                    int(state.length[e]),
-                    self.problem_table[problem_ids[k]],
-                )
-                self._slots[e], self._generations[e] = slot, generation
-            self._n_trials += len(idx)
-            self._exploration_lengths.extend(state.length[idx].tolist())
-        z = decode(self.policy, state, idx, state.length[idx])
-        if use_encoder.any():
-            z[use_encoder] = self.encode(problem_ids[use_encoder], noisy=True)
-        state.z[idx], state.z_ready[idx] = z, True
-
-    def predict(
-        self,
-        observation: Dict[str, np.ndarray],
-        state: Optional[Tuple[np.ndarray, ...]] = None,
-        episode_start: Optional[np.ndarray] = None,
-        deterministic: bool = False,
-    ) -> Tuple[np.ndarray, Tuple[np.ndarray, ...]]:
-        """Act at meta-test, following the sb3-contrib recurrent convention.
-
-        ``state`` carries the trial: the exploration LSTM state, the exploration trajectory and,
-        once exploration is over, z = g(tau^exp); it is reset where ``episode_start`` (a new
-        trial) is set. Pass back the state each call returns: without it every call starts a new
-        trial (a warning says so once). ``deterministic=False`` acts epsilon-greedily with the
-        current epsilons. ``predict`` sees observations only, so the exploration episode's last
-        state (in ``info["final_obs"]``) is not available to the decoder here;
-        :meth:`as_trial_agent` (used by :func:`sb3_dream.evaluation.evaluate_meta`) passes it.
-        """
-        self.policy.set_training_mode(False)
-        obs, vectorized = batch_observation(observation, self.policy)
-        n = len(obs["phase"])
-        if state is None:
-            if np.any(np.asarray(obs["phase"]) != EXPLORATION) and not self._warned_stateless_predict:
-                self._warned_stateless_predict = True
-                warnings.warn(
-                    "DREAM.predict was called without state in an execution episode: the state carries the "
-                    "trial's exploration trajectory, from which the execution policy's z is decoded, so without "
-                    "it execution acts on an empty exploration. Pass the state returned by the previous call.",
-                    stacklevel=2,
-                )
-            trial = self.new_trial_state(n)
-        else:
-            trial = TrialState.from_tuple(state, self.device)
-        starts = np.ones(n, bool) if episode_start is None else np.asarray(episode_start, dtype=bool).reshape(n)
-        if state is None:
-            starts[:] = True
-        trial.reset(np.flatnonzero(starts))
-        eps = (0.0, 0.0) if deterministic else (self.exploration_epsilon, self.execution_epsilon)
-        actions = act(self.policy, obs, trial, *eps, self._rng)
-        return (actions if vectorized else actions[0:1].reshape(())), trial.as_tuple()
-
-    def as_trial_agent(self, deterministic: bool = True) -> ScriptedAgent:
-        """A trial agent that also reads ``info["final_obs"]`` (see :mod:`sb3_dream.evaluation`)."""
-        return DreamTrialAgent(self, deterministic)
-
-    def as_batch_trial_agent(self, deterministic: bool = True) -> BatchTrialAgent:
-        """:meth:`as_trial_agent` for trials played side by side (see :mod:`sb3_dream.evaluation`)."""
-        return DreamBatchTrialAgent(self, deterministic)
-
     # ------------------------------------------------------------------ collecting (SB3's hooks)
+    def _store_explorations(self, state: TrialState, idx: np.ndarray, problem_ids: np.ndarray) -> None:
+        """Store the just-ended exploration trajectories of envs ``idx`` in B_exp (Algorithm 1, line 9)."""
+        for k, e in enumerate(idx):
+            slot, generation = self.replay_buffer.exploration.add(
+                state.states[e],
+                state.actions[e],
+                state.prev_actions[e],
+                state.prev_rewards[e],
+                int(state.length[e]),
+                self.problem_table[problem_ids[k]],
+            )
+            self._slots[e], self._generations[e] = slot, generation
+        self._n_trials += len(idx)
+        self._exploration_lengths.extend(state.length[idx].tolist())
+
     def _setup_learn(
         self,
         total_timesteps: int,
@@ -626,7 +506,6 @@ class DREAM(TrialOffPolicyAlgorithm):
         if isinstance(self.parallel_updates, str):  # "auto"
             return self.device.type == "cpu" and available_cores() > 1
         return bool(self.parallel_updates)
-
 
     def exploration_rewards(self, g: th.Tensor, f: th.Tensor, lengths: th.Tensor) -> th.Tensor:
         """Equation 5 with this model's c (:func:`sb3_dream.dream.losses.exploration_rewards`)."""

@@ -21,7 +21,7 @@ from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferS
 from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
 from sb3_dream.common.wrappers import FinalObsWrapper, final_obs_entry
-from sb3_dream.evaluation import PolicyBatchAgent
+from sb3_dream.common.agents import PolicyBatchAgent
 from sb3_dream.rl2dqn.policies import CnnLstmPolicy, MultiInputLstmPolicy, RL2DQNPolicy, RL2QNetwork
 
 SelfRL2DQN = TypeVar("SelfRL2DQN", bound="RL2DQN")
