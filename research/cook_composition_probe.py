@@ -163,7 +163,7 @@ def greedy_returns(q_net: ExecutionQNetwork, encoder: ProblemEncoder, pairs: Seq
     returns, done = np.zeros(len(pairs)), np.zeros(len(pairs), dtype=bool)
     for _ in range(HORIZON):
         obs = th.as_tensor(np.array([observation(s) for s in states]))
-        actions = q_net(obs, recipes, z)[:, ACTIONS].argmax(dim=1).tolist()
+        actions = q_net(obs, recipes, z)[0][:, ACTIONS].argmax(dim=1).tolist()
         for j, (k, recipe) in enumerate(pairs):
             if not done[j]:
                 states[j], r, done[j] = cook.cook_transition(states[j], ACTIONS[actions[j]], contents[j], recipe)
@@ -173,7 +173,7 @@ def greedy_returns(q_net: ExecutionQNetwork, encoder: ProblemEncoder, pairs: Seq
 
 def dataset_q(q_net: ExecutionQNetwork, encoder: ProblemEncoder, data, rows: th.Tensor) -> th.Tensor:
     """Q(s, i, f(T), a) of the dataset's ``rows``, for the actions in :data:`ACTIONS`."""
-    return q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[:, ACTIONS]
+    return q_net(data["obs"][rows], data["recipes"][rows], encoder(data["problems"][rows]))[0][:, ACTIONS]
 
 
 @th.no_grad()

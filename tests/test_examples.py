@@ -276,7 +276,7 @@ def test_cook_composition_probe_fusions_change_one_place_of_the_wide_parts_netwo
     added_or_replaced = {"film_parts": {"film_state", "film_recipe"}, "shared_parts": {"instruction_embed"}}
     for variant in probe.FUSIONS:
         q_net = probe.q_network(variant, space)
-        assert q_net(states, recipes, z).shape == (4, 9)
+        assert q_net(states, recipes, z)[0].shape == (4, 9)
         changed = {name for name, child in q_net.named_children() if type(child) is not type(base.get(name))}
         assert changed == added_or_replaced.get(variant, set())
     # shared_parts: an ingredient has one embedding, first or second in the recipe

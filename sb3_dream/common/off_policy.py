@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Dict, Tuple, TypeVar, Union
+from typing import Any, ClassVar, Dict, Iterable, Optional, Tuple, TypeVar, Union
 
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
 
-from dream_envs.checks import check_positive_int
+from dream_envs.checks import check_non_negative, check_positive_int
+from sb3_dream.common.files import PathOrFile, atomic_target
 
 SelfTrialOffPolicyAlgorithm = TypeVar("SelfTrialOffPolicyAlgorithm", bound="TrialOffPolicyAlgorithm")
 
@@ -36,7 +37,8 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
       after each the rounds that are due (``train_freq`` env steps each) are run.
 
     SB3 arguments that do not apply to an algorithm raise an error naming its equivalent
-    (:attr:`sb3_equivalents`).
+    (:attr:`sb3_equivalents`); SB3's own numbers are checked (``learning_rate`` > 0, ``gamma`` in
+    [0, 1], ...). ``save`` and ``save_replay_buffer`` are atomic.
     """
 
     #: SB3 constructor arguments the algorithm does not take, each with what to use instead.
@@ -44,18 +46,28 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
 
     def __init__(
         self,
-        *args: Any,
+        policy: Any,
+        env: Any,
+        learning_rate: Union[float, Schedule],
+        *,
         learning_starts: int,
         train_freq: Union[int, Tuple[int, str]],
         gradient_steps: int,
         **kwargs: Any,
     ) -> None:
+        if not callable(learning_rate) and check_non_negative("learning_rate", learning_rate) == 0:
+            raise ValueError("learning_rate must be a number > 0 or a schedule, got 0")
+        if check_non_negative("gamma", kwargs.get("gamma", 0.99)) > 1:
+            raise ValueError(f"gamma must be in [0, 1], got {kwargs['gamma']!r}")
+        check_positive_int("stats_window_size", kwargs.get("stats_window_size", 100), 1)
         check_positive_int("learning_starts", learning_starts, 0)
         check_positive_int("gradient_steps", gradient_steps, 0)
         self.train_every = env_steps_per_update(train_freq)
         self._steps_since_update = 0  # env steps not yet paid for by a round of updates
         super().__init__(
-            *args,
+            policy,
+            env,
+            learning_rate,
             learning_starts=learning_starts,
             train_freq=TrainFreq(1, TrainFrequencyUnit.STEP),  # a rollout is one vectorised step
             gradient_steps=gradient_steps,
@@ -76,6 +88,19 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
         super()._setup_model()
         # SB3 turns train_freq into a TrainFreq in _setup_model; ours stays one vectorised step.
         self.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
+
+    def save(
+        self, path: PathOrFile, exclude: Optional[Iterable[str]] = None, include: Optional[Iterable[str]] = None
+    ) -> None:
+        """SB3's ``save``, written to a temporary file beside ``path`` and renamed over it: a save
+        that is interrupted leaves the previous file intact."""
+        with atomic_target(path, "zip") as target:
+            super().save(target, exclude, include)
+
+    def save_replay_buffer(self, path: PathOrFile) -> None:
+        """SB3's ``save_replay_buffer``, as atomic as :meth:`save`."""
+        with atomic_target(path, "pkl") as target:
+            super().save_replay_buffer(target)
 
     def _updates_due(self, n_env_steps: int) -> int:
         """Gradient steps owed after ``n_env_steps`` more env steps: ``gradient_steps`` per

@@ -206,6 +206,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
             ("bottleneck_threshold", bottleneck_threshold),
             ("bottleneck_weight", bottleneck_weight),
             ("max_grad_norm", max_grad_norm),
+            ("reward_penalty", reward_penalty),
         ]:
             check_non_negative(name, value)
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)

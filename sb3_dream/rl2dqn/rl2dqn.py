@@ -216,7 +216,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             policy,
             env,  # type: ignore[arg-type]
             learning_rate,
-            buffer_size,
+            buffer_size=buffer_size,
             batch_size=batch_size,
             tau=tau,
             gamma=gamma,
