@@ -18,6 +18,7 @@ import traceback
 from typing import Any, Dict, Iterator, Optional, Protocol, Sequence
 
 from sb3_dream.experiments.config import Run, RunConfig
+from sb3_dream.experiments.lock import hold_worker_lock
 from sb3_dream.experiments.training import run_one
 
 
@@ -69,15 +70,22 @@ class LocalPool:
             # "spawn": fresh interpreters, no forked torch thread pools.
             context = multiprocessing.get_context("spawn")
             with concurrent.futures.ProcessPoolExecutor(
-                max_workers=jobs, mp_context=context, initializer=_exit_with_parent, initargs=(os.getpid(),)
+                max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), out)
             ) as pool:
                 futures = [pool.submit(run_worker, run, config, out, jobs) for run in runs]
                 for future in concurrent.futures.as_completed(futures):
                     yield future.result()
 
 
+def _init_worker(parent_pid: int, out: pathlib.Path) -> None:
+    """Worker-process initializer: :func:`_exit_with_parent`, and hold ``out``'s workers lock
+    (:func:`~sb3_dream.experiments.lock.hold_worker_lock`) while this worker lives."""
+    hold_worker_lock(out)
+    _exit_with_parent(parent_pid)
+
+
 def _exit_with_parent(parent_pid: int, poll_seconds: float = 1.0) -> None:
-    """Worker-process initializer: end this worker soon after the runner that started it ends.
+    """In a worker process: end it soon after the runner that started it ends.
 
     A runner stopped by ``kill`` (SIGTERM or SIGKILL, unlike Ctrl-C, which reaches its whole
     process group) would otherwise leave its workers training on, writing checkpoints and curves

@@ -19,6 +19,11 @@ learning curve and wall-clock so far (the envs start fresh trials; nothing else 
 how budgets longer than one sitting (the paper's millions of steps) are run on a laptop. Its
 worker processes end with the runner however it is stopped (Ctrl-C, ``kill``, ``kill -9``), so
 none trains on unseen into ``--out``.
+**One runner per folder.** A runner holds ``<out>/.runner.lock`` while it trains (released when
+it ends, however it ends); a second runner on the same ``--out`` stops at once with an error
+naming the first (pid, host, start time, command line). A lock record left by a killed runner is
+taken over, with a note on stderr. ``--summary-only`` only reads the runs and needs no lock; the
+summary, the table and the figure are replaced atomically.
 A complete run keeps its last checkpoint (at its final step), so the same command with a larger
 ``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
 starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
@@ -92,6 +97,7 @@ from dream_envs import all_splits
 from sb3_dream.evaluation import BEST_TIES
 from sb3_dream.experiments.algorithms import ALGORITHMS, override_fields, preset_names
 from sb3_dream.experiments.config import EnvSpec, RunConfig, parse_kwargs
+from sb3_dream.experiments.lock import FolderLocked
 from sb3_dream.experiments.report import oracle_return, plot_curves, summarize, with_finished_runs, write_summary
 from sb3_dream.experiments.runner import check_eval_splits, check_presets, plan_runs, run_experiments
 
@@ -215,7 +221,10 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    records = [] if args.summary_only else run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
+    try:
+        records = [] if args.summary_only else run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
+    except FolderLocked as error:
+        raise SystemExit(f"error: {error}")
 
     # The table and the figure cover every finished run under --out, not only this command's.
     runs = with_finished_runs(runs, out)

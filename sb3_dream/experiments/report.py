@@ -1,4 +1,5 @@
-"""Reports of an experiment: its finished runs, the oracle's return, the summary table, the figure."""
+"""Reports of an experiment: its finished runs, the oracle's return, the summary table, the figure
+(each file replaced atomically)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from dream_envs import all_splits
+from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import CURVE_COLUMNS
 from sb3_dream.experiments.algorithms import ALGORITHMS
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig
@@ -78,7 +80,8 @@ def oracle_return(
         return None
     path.parent.mkdir(parents=True, exist_ok=True)
     record = {"mean": result.mean, "ci": result.ci, "n_trials": result.n_trials}
-    path.write_text(json.dumps({**record, "exhaustive": True} if exhaustive else record))
+    with atomic_target(path, "json") as tmp:
+        tmp.write_text(json.dumps({**record, "exhaustive": True} if exhaustive else record))
     return result.mean
 
 
@@ -131,7 +134,7 @@ SUMMARY_COLUMNS = (
 
 def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
     """Write ``summary.csv`` and ``summary.md`` under ``out``; return the markdown table."""
-    with open(out / "summary.csv", "w", newline="") as f:
+    with atomic_target(out / "summary.csv", "csv") as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
         writer.writeheader()
         for row in rows:
@@ -150,7 +153,8 @@ def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
         cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, steps, clock]
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(table)
+    with atomic_target(out / "summary.md", "md") as tmp:
+        tmp.write_text(table)
     return table
 
 
@@ -205,6 +209,7 @@ def plot_curves(
         ax.axis("off")
     fig.tight_layout()
     path = out / "curves.png"
-    fig.savefig(path, dpi=120)
+    with atomic_target(path, "png") as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return path

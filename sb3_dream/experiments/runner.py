@@ -13,6 +13,7 @@ from sb3_dream.experiments.algorithms import ALGORITHMS, algorithm_kwargs
 from sb3_dream.experiments.backends import Backend, LocalPool
 from sb3_dream.experiments.checkpoints import Checkpointer, extendable
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig
+from sb3_dream.experiments.lock import runner_lock
 
 
 def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int]) -> List[Run]:
@@ -56,7 +57,10 @@ def run_experiments(
     up to that many at once, default the machine's cores; ``jobs=1`` runs them one after the other
     in this process).
 
-    Returns one record per run with ``status`` "done", "skipped" or "failed".
+    Returns one record per run with ``status`` "done", "skipped" or "failed". Holds ``out``'s lock
+    (:func:`~sb3_dream.experiments.lock.runner_lock`) throughout: raises
+    :class:`~sb3_dream.experiments.lock.FolderLocked`, naming the holder, if another runner trains
+    into ``out``.
     """
     if backend is None:
         backend = LocalPool(jobs)
@@ -65,6 +69,13 @@ def run_experiments(
     check_eval_splits(runs, config)
     check_presets(runs, config)
     out = pathlib.Path(out)
+    with runner_lock(out):
+        return _run_due(runs, config, out, force, backend)
+
+
+def _run_due(
+    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, force: bool, backend: Backend
+) -> List[Dict[str, Any]]:
     records: List[Dict[str, Any]] = []
     pending: List[Run] = []
     for run in runs:
