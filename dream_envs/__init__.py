@@ -14,7 +14,7 @@ from gymnasium.envs.registration import register, registry
 
 from dream_envs.agents import BatchTrialAgent, RandomAgent, ScriptedAgent, SingleTrialAgent
 from dream_envs.play import play_trial, play_trials, play_trials_batched
-from dream_envs.trial_env import EXECUTION, EXPLORATION, SPLITS, TrialEnv, public_info
+from dream_envs.trial_env import EXECUTION, EXPLORATION, SPLITS, TrialEnv, check_trial_spec, public_info
 
 ENV_IDS = {
     "MetaBus-v0": "dream_envs.bus:MetaBusEnv",
@@ -65,6 +65,7 @@ __all__ = [
     "SingleTrialAgent",
     "TrialEnv",
     "all_splits",
+    "check_trial_spec",
     "env_splits",
     "make_oracle",
     "play_trial",

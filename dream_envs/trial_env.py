@@ -205,6 +205,21 @@ class TrialEnv(gym.Env, ABC):
         """``[n_problems, len(problem_nvec)]``: :meth:`problem_features` of every problem ID."""
         return np.stack([self.problem_features(k) for k in range(self.n_problems)]).astype(np.int64)
 
+    def trial_spec(self) -> Dict[str, Any]:
+        """The trial shape a model trained in this env relies on: the problem family and how its
+        problems are represented, the inner-episode horizon, the execution episodes per trial and
+        the splits' sizes (the split an env samples from is not part of it). The algorithms check
+        it with :func:`check_trial_spec`: a VecEnv's sub-envs against each other, a model against
+        the env it is given."""
+        return {
+            "family": type(self).__name__,
+            "horizon": int(self.horizon),
+            "n_exec_episodes": int(self.n_exec_episodes),
+            "n_problems": int(self.n_problems),
+            "problem_nvec": [int(n) for n in self.problem_nvec],
+            "split_sizes": {split: len(self._split_problem_ids(split)) for split in self.splits},
+        }
+
     def problem_ids(self, split: Optional[str] = None) -> np.ndarray:
         """The problem IDs of ``split`` (default: this env's split)."""
         split = self.split if split is None else check_choice("split", split, self.splits)
@@ -379,6 +394,19 @@ class TrialEnv(gym.Env, ABC):
 
     def _info(self) -> Dict[str, Any]:
         return {"problem_id": self.problem_id, "phase": self.phase, "episode_index": self.episode_index}
+
+
+def check_trial_spec(
+    expected: Dict[str, Any], actual: Dict[str, Any], expected_name: str, actual_name: str, ignore: Sequence[str] = ()
+) -> None:
+    """Raise a ``ValueError`` naming the first setting of :meth:`TrialEnv.trial_spec` (outside
+    ``ignore``) in which ``actual`` differs from ``expected``, with both values."""
+    for key, value in expected.items():
+        if key not in ignore and key in actual and actual[key] != value:
+            raise ValueError(
+                f"{actual_name} does not match {expected_name}: its {key} is {actual[key]!r}, "
+                f"{expected_name}'s is {value!r}"
+            )
 
 
 PRIVILEGED_INFO_KEYS = ("problem_id",)

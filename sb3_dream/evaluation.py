@@ -221,6 +221,14 @@ def evaluate_meta(
     side_by_side = (n_envs if exhaustive else min(n_envs, n_trials)) if batch_agent is not None else 1
     envs, made = make_envs(env, split, n_exec_episodes, env_kwargs, side_by_side)
     envs = envs[:side_by_side]
+    if hasattr(agent, "check_trial_env"):  # a model evaluated in another trial shape acts on garbage
+        try:
+            for e in envs:  # more execution episodes per trial than in training is a meta-test choice
+                agent.check_trial_env(e, "the evaluation env", ignore=("n_exec_episodes",))
+        except ValueError:
+            for e in made:
+                e.close()
+            raise
     instructions, probabilities = None, None
     if exhaustive:
         problem_ids, instructions, probabilities = exhaustive_cases(envs[0], split, n_trials)

@@ -1,4 +1,4 @@
-"""Saves are atomic, and hyperparameters are checked with errors that name them."""
+"""Nothing lost, nothing silently wrong: atomic saves, checked hyperparameters, checked trial shapes."""
 
 from __future__ import annotations
 
@@ -8,10 +8,12 @@ import sys
 import textwrap
 import time
 
+import gymnasium as gym
 import numpy as np
 import pytest
+from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_dream import DREAM, RL2DQN
+from sb3_dream import DREAM, RL2DQN, evaluate_meta
 
 SAVER = textwrap.dedent(
     """
@@ -90,3 +92,55 @@ def test_dream_checks_its_own_numbers():
     for name, value in [("reward_penalty", -1), ("encoder_variance", -0.1), ("bottleneck_threshold", np.inf)]:
         with pytest.raises(ValueError, match=name):
             DREAM("MetaBandit-v0", **{name: value})
+
+
+# ---------------------------------------------------------------------- trial shapes
+@pytest.fixture(scope="module")
+def horizon_20_model():
+    model = DREAM(gym.make("MetaBus-v0", variant="map"), seed=0, exploration_learning_starts=10**6)
+    model.learn(100)
+    return model
+
+
+def test_a_model_meets_only_envs_of_its_trial_shape(horizon_20_model, tmp_path):
+    model = horizon_20_model
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "replay")
+    other_horizon = gym.make("MetaBus-v0", variant="map", horizon=30)
+    with pytest.raises(ValueError, match="horizon is 30, the model's is 20"):
+        model.set_env(other_horizon)
+    with pytest.raises(ValueError, match="horizon is 30, the model's is 20"):
+        DREAM.load(tmp_path / "model", env=other_horizon)
+    with pytest.raises(ValueError, match="the evaluation env.*horizon is 30"):
+        evaluate_meta(model, "MetaBus-v0", n_trials=2, env_kwargs={"variant": "map", "horizon": 30})
+    with pytest.raises(ValueError, match="family is 'MetaCookEnv'"):
+        evaluate_meta(model, "MetaCook-v0", n_trials=2)
+    # what may differ: the split, and the execution episodes per trial at meta-test
+    evaluate_meta(model, "MetaBus-v0", n_trials=2, split="train", n_exec_episodes=2, env_kwargs={"variant": "map"})
+    DREAM.load(tmp_path / "model", env=gym.make("MetaBus-v0", variant="map", split="test"))
+    # a replay buffer filled in another trial shape
+    other = DREAM(gym.make("MetaBus-v0"), seed=0, exploration_learning_starts=10**6)
+    other.learn(50)
+    other.save_replay_buffer(tmp_path / "distracting")
+    with pytest.raises(ValueError, match=r"replay buffer in .*distracting.* n_problems is 576, the model's is 24"):
+        model.load_replay_buffer(tmp_path / "distracting")
+    assert model.replay_buffer.trial_spec == model.trial_spec  # the model's own buffer is kept
+    model.load_replay_buffer(tmp_path / "replay")
+
+
+@pytest.mark.parametrize("algo", [DREAM, RL2DQN])
+def test_a_vec_env_of_mixed_trial_shapes_is_refused(algo):
+    mixed = DummyVecEnv([lambda: gym.make("MetaBus-v0"), lambda: gym.make("MetaBus-v0", variant="vanilla")])
+    with pytest.raises(ValueError, match="sub-env 1 of the VecEnv does not match sub-env 0.*n_problems"):
+        algo(mixed)
+    lengths = DummyVecEnv([lambda: gym.make("MetaBus-v0"), lambda: gym.make("MetaBus-v0", n_exec_episodes=2)])
+    with pytest.raises(ValueError, match="n_exec_episodes is 2, sub-env 0 of the VecEnv's is 1"):
+        algo(lengths)
+
+
+def test_rl2dqn_replay_buffers_carry_their_trial_shape(tmp_path):
+    model = RL2DQN(gym.make("MetaBus-v0", variant="map"), buffer_size=10)
+    model.save_replay_buffer(tmp_path / "map")
+    other = RL2DQN(gym.make("MetaBus-v0"), buffer_size=10)
+    with pytest.raises(ValueError, match="replay buffer .* does not match the model"):
+        other.load_replay_buffer(tmp_path / "map")

@@ -2,15 +2,37 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Dict, Iterable, Optional, Tuple, TypeVar, Union
+from typing import Any, ClassVar, Dict, Iterable, Optional, Sequence, Tuple, Type, TypeVar, Union
+
+import gymnasium as gym
 
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule, TrainFreq, TrainFrequencyUnit
+from stable_baselines3.common.vec_env import VecEnv
 
 from dream_envs.checks import check_non_negative, check_positive_int
+from dream_envs.trial_env import check_trial_spec
 from sb3_dream.common.files import PathOrFile, atomic_target
 
 SelfTrialOffPolicyAlgorithm = TypeVar("SelfTrialOffPolicyAlgorithm", bound="TrialOffPolicyAlgorithm")
+
+
+def trial_spec_of(env: Union[VecEnv, gym.Env]) -> Optional[Dict[str, Any]]:
+    """The trial spec (:meth:`dream_envs.TrialEnv.trial_spec`) that every sub-env of ``env`` shares,
+    or None where ``env`` is no trial env; a ``ValueError`` naming the setting where sub-envs differ
+    (a VecEnv of mixed envs would train on sub-env 0's problems, horizon and trial length)."""
+    if isinstance(env, VecEnv):
+        if not env.has_attr("trial_spec"):
+            return None
+        specs = env.env_method("trial_spec")
+    else:
+        unwrapped = getattr(env, "unwrapped", env)
+        if not hasattr(unwrapped, "trial_spec"):
+            return None
+        specs = [unwrapped.trial_spec()]
+    for k, spec in enumerate(specs[1:], start=1):
+        check_trial_spec(specs[0], spec, "sub-env 0 of the VecEnv", f"sub-env {k} of the VecEnv")
+    return specs[0]
 
 
 def env_steps_per_update(train_freq: Union[int, Tuple[int, str]]) -> int:
@@ -73,6 +95,8 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
             gradient_steps=gradient_steps,
             **kwargs,
         )
+        # The trial shape the model is built for (saved with it): checked against every env it meets.
+        self.trial_spec = None if self.env is None else trial_spec_of(self.env)
 
     @classmethod
     def reject_sb3_arguments(cls, kwargs: Dict[str, Any]) -> None:
@@ -88,6 +112,48 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
         super()._setup_model()
         # SB3 turns train_freq into a TrainFreq in _setup_model; ours stays one vectorised step.
         self.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
+
+    def check_trial_env(self, env: Union[VecEnv, gym.Env], what: str, ignore: Sequence[str] = ()) -> None:
+        """A ``ValueError`` naming the setting and both values where ``env``'s trial spec differs
+        from the model's (``ignore``: settings that may differ, e.g. ``n_exec_episodes`` at meta-test)."""
+        spec = trial_spec_of(env)
+        if spec is not None and self.trial_spec is not None:
+            check_trial_spec(self.trial_spec, spec, "the model", what, ignore)
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """SB3's ``set_env``, after checking that ``env`` has the model's trial shape."""
+        self.check_trial_env(env, "the env given to set_env")
+        super().set_env(env, force_reset)
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls: Type[SelfTrialOffPolicyAlgorithm],
+        path: PathOrFile,
+        env: Optional[GymEnv] = None,
+        *args: Any,
+        **kwargs: Any,
+    ) -> SelfTrialOffPolicyAlgorithm:
+        """SB3's ``load``; an ``env`` must have the saved model's trial shape."""
+        model = super().load(path, env, *args, **kwargs)
+        if env is not None:
+            model.check_trial_env(model.get_env(), "the env given to load")
+        return model
+
+    def load_replay_buffer(self, path: PathOrFile, truncate_last_traj: bool = True) -> None:
+        """SB3's ``load_replay_buffer``; the buffer must have been filled in the model's trial shape."""
+        model_buffer = self.replay_buffer
+        super().load_replay_buffer(path, truncate_last_traj)
+        try:
+            self.check_replay_buffer(self.replay_buffer, path)
+        except ValueError:
+            self.replay_buffer = model_buffer
+            raise
+
+    def check_replay_buffer(self, buffer: Any, path: Any) -> None:
+        """A ``ValueError`` naming the setting where ``buffer`` was filled in another trial shape."""
+        spec = getattr(buffer, "trial_spec", None)
+        if spec is not None and self.trial_spec is not None:
+            check_trial_spec(self.trial_spec, spec, "the model", f"the replay buffer in {path}")
 
     def save(
         self, path: PathOrFile, exclude: Optional[Iterable[str]] = None, include: Optional[Iterable[str]] = None

@@ -16,7 +16,7 @@ Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) sav
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, NamedTuple, Optional, Tuple
+from typing import Any, Dict, NamedTuple, Optional, Tuple
 
 import numpy as np
 import torch as th
@@ -221,6 +221,7 @@ class DreamReplayBuffer:
 
     def __init__(self, exploration: ExplorationBuffer, execution: ExecutionBuffer) -> None:
         self.exploration, self.execution = exploration, execution
+        self.trial_spec: Optional[Dict[str, Any]] = None  # the trial shape it is filled in (set by DREAM)
 
     def sample_trajectories(self, batch_size: int, rng: np.random.Generator) -> TrajectoryBatch:
         """``batch_size`` exploration trajectories drawn uniformly from B_exp."""

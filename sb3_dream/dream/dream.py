@@ -332,6 +332,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         )
         execution = ExecutionBuffer(self.execution_buffer_size, self.observation_space, self.device)
         self.replay_buffer = DreamReplayBuffer(exploration, execution)
+        self.replay_buffer.trial_spec = self.trial_spec
         self._trial_state: Optional[TrialState] = None
 
     def _excluded_save_params(self) -> List[str]:
@@ -346,6 +347,12 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         buffer = load_from_pkl(path, self.verbose)
         if not isinstance(buffer, DreamReplayBuffer):
             raise TypeError(f"{path} does not hold a DREAM replay buffer (got {type(buffer).__name__})")
+        self.check_replay_buffer(buffer, path)
+        if buffer.exploration.max_length != self.exploration_horizon:  # a buffer saved before trial specs
+            raise ValueError(
+                f"the replay buffer in {path} does not match the model: its exploration horizon is "
+                f"{buffer.exploration.max_length}, the model's is {self.exploration_horizon}"
+            )
         buffer.device = self.device
         self.replay_buffer = buffer
 

@@ -279,6 +279,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             hidden = self.policy_kwargs.get("lstm_hidden_size", 64)
             self.replay_buffer_kwargs["lstm_state_shape"] = (layers, hidden)
         super()._setup_model()
+        self.replay_buffer.trial_spec = self.trial_spec  # type: ignore[attr-defined]  # checked at load
         self.q_net = self.policy.q_net
         self.q_net_target = self.policy.q_net_target
         self._lstm_states = None
