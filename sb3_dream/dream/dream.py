@@ -11,7 +11,7 @@ Per training trial (one Gymnasium episode of a :class:`dream_envs.TrialEnv`):
    decoder, z = g(tau^exp) (line 11); the execution policy Q^exe(s, i, z) rolls out the execution
    episodes; their transitions go to the execution buffer with a reference to tau^exp (lines 12-13).
 
-Every ``train_freq`` env steps, one update of each part (lines 14-23):
+Every ``train_freq`` env steps (summed over envs), ``gradient_steps`` updates of each part (lines 14-23):
 
 * exploration DDQN on the information-gain reward, recomputed with the current f and g
   (Equation 5): r_t = ||f(T) - g(tau_:t)||^2 - ||f(T) - g(tau_:t+1)||^2 - c;
@@ -22,6 +22,11 @@ Every ``train_freq`` env steps, one update of each part (lines 14-23):
 * the decoder regression of every prefix g(tau_:t) toward stop-gradient f(T) (Equation 4).
 
 At meta-test the execution policy always uses z = g(tau^exp): the problem ID is never needed.
+
+This module orchestrates; each concept has its own: :mod:`~sb3_dream.dream.acting` (the trial
+state, acting, ``predict`` and the meta-test agents), :mod:`~sb3_dream.dream.policies` (the four
+networks), :mod:`~sb3_dream.dream.buffers` (B_exp and B_exe), :mod:`~sb3_dream.dream.losses`
+(Equations 2-5) and :mod:`~sb3_dream.dream.updates` (one optimizer step of each part).
 """
 
 from __future__ import annotations
@@ -259,7 +264,6 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self.execution_target_z = execution_target_z
         self.execution_sampling = execution_sampling
         self._update_thread: Optional[ThreadPoolExecutor] = None
-        self._warned_stateless_predict = False
 
         if self.env is not None:
             self._check_trial_env(self.observation_space)
