@@ -30,6 +30,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
 
+from sb3_dream.common.files import atomic_target, with_suffix
 from sb3_dream.common.wrappers import RL2ObservationWrapper
 from sb3_dream.rl2dqn import RL2DQN
 
@@ -132,8 +133,10 @@ def main() -> None:
     ax.set_title(f"RL2DQN, CartPole without velocities ({elapsed:.0f}s)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(args.out, dpi=100)
-    print(f"saved {args.out}")
+    out = with_suffix(args.out, "png")  # matplotlib's format when --out names none
+    with atomic_target(out, out.suffix[1:]) as tmp:  # written beside out, renamed over it once complete
+        fig.savefig(tmp, dpi=100)
+    print(f"saved {out}")
 
 
 if __name__ == "__main__":

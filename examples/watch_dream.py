@@ -25,6 +25,7 @@ import numpy as np
 
 import dream_envs
 from dream_envs import EXPLORATION, ScriptedAgent, public_info
+from sb3_dream.common.files import atomic_target
 from sb3_dream.experiments import parse_kwargs
 
 # Action names of the grid families (MetaBus-v0, MetaCook-v0 share the action set).
@@ -107,33 +108,33 @@ def record_trial(
 
 
 def write_video(frames: Sequence[np.ndarray], path: pathlib.Path, fps: int) -> None:
-    """Write RGB ``frames`` to ``path`` (.mp4, .avi or .gif) with OpenCV."""
+    """Write RGB ``frames`` to ``path`` (.mp4, .avi or .gif) with OpenCV, through a temporary file
+    renamed over ``path`` once it is complete."""
     suffix = path.suffix.lower()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if suffix in (".mp4", ".avi"):
-        height, width = frames[0].shape[:2]
-        fourcc = cv2.VideoWriter_fourcc(*("mp4v" if suffix == ".mp4" else "MJPG"))
-        writer = cv2.VideoWriter(str(path), fourcc, fps, (width, height))
-        if not writer.isOpened():
-            raise RuntimeError(f"OpenCV cannot write {suffix} here: try --out with .avi or .gif")
-        for frame in frames:
-            writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
-        writer.release()
-    elif suffix == ".gif":
-        if hasattr(cv2, "imwriteanimation"):  # OpenCV >= 4.11
+    if suffix not in (".mp4", ".avi", ".gif"):
+        raise ValueError(f"out={str(path)!r} is not valid; accepted suffixes: '.mp4', '.avi', '.gif'")
+    with atomic_target(path, suffix[1:]) as tmp:
+        if suffix in (".mp4", ".avi"):
+            height, width = frames[0].shape[:2]
+            fourcc = cv2.VideoWriter_fourcc(*("mp4v" if suffix == ".mp4" else "MJPG"))
+            writer = cv2.VideoWriter(str(tmp), fourcc, fps, (width, height))
+            if not writer.isOpened():
+                raise RuntimeError(f"OpenCV cannot write {suffix} here: try --out with .avi or .gif")
+            for frame in frames:
+                writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+            writer.release()
+        elif hasattr(cv2, "imwriteanimation"):  # OpenCV >= 4.11
             animation = cv2.Animation()
             animation.frames = [cv2.cvtColor(f, cv2.COLOR_RGB2BGR) for f in frames]
             animation.durations = [int(1000 / fps)] * len(frames)
-            if not cv2.imwriteanimation(str(path), animation):
+            if not cv2.imwriteanimation(str(tmp), animation):
                 raise RuntimeError(f"OpenCV could not write {path}")
         else:
             try:
                 import imageio.v2 as imageio
             except ImportError as error:
                 raise RuntimeError("GIFs need OpenCV >= 4.11 or imageio: write an .mp4 instead") from error
-            imageio.mimsave(path, list(frames), duration=1 / fps)
-    else:
-        raise ValueError(f"out={str(path)!r} is not valid; accepted suffixes: '.mp4', '.avi', '.gif'")
+            imageio.mimsave(tmp, list(frames), duration=1 / fps)
 
 
 def load_agent(args: argparse.Namespace, env: gym.Env) -> ScriptedAgent:

@@ -9,6 +9,7 @@ The package, by concept:
 * :mod:`~sb3_dream.experiments.checkpoints`: resuming, extending and starting from other runs;
 * :mod:`~sb3_dream.experiments.backends`: where runs execute (:class:`LocalPool`: processes here);
 * :mod:`~sb3_dream.experiments.runner`: which runs are due, handed to a backend;
+* :mod:`~sb3_dream.experiments.lock`: one runner at a time per experiment folder;
 * :mod:`~sb3_dream.experiments.report`: summaries, the oracle's return, the figure.
 """
 
@@ -25,6 +26,7 @@ from sb3_dream.experiments.backends import Backend, LocalPool
 from sb3_dream.experiments.checkpoints import Checkpointer, init_checkpoint
 from sb3_dream.experiments.cli import build_parser, main
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig, parse_kwargs
+from sb3_dream.experiments.lock import FolderLocked, runner_lock
 from sb3_dream.experiments.report import (
     SUMMARY_COLUMNS,
     finished_runs,
@@ -43,6 +45,7 @@ __all__ = [
     "Backend",
     "Checkpointer",
     "EnvSpec",
+    "FolderLocked",
     "LocalPool",
     "Run",
     "RunConfig",
@@ -65,6 +68,7 @@ __all__ = [
     "register_algorithm",
     "run_experiments",
     "run_one",
+    "runner_lock",
     "summarize",
     "write_summary",
 ]
