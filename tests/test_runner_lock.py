@@ -97,7 +97,8 @@ def test_a_second_runner_on_a_folder_in_use_stops_and_the_finished_curve_stays(t
     assert read_holder(out / LOCK_NAME)["pid"] == first.pid
     records = experiments.main(_argv(out, [0], 120))
     assert [r["status"] for r in records] == ["skipped"]
-    assert f"taking over the lock of a runner that ended without releasing it (pid {first.pid}" in capsys.readouterr().err
+    taken_over = f"taking over the lock of a runner that ended without releasing it (pid {first.pid}"
+    assert taken_over in capsys.readouterr().err
     assert finished.read_bytes() == curve and not (out / LOCK_NAME).exists()
 
 

@@ -19,14 +19,15 @@ learning curve and wall-clock so far (the envs start fresh trials; nothing else 
 how budgets longer than one sitting (the paper's millions of steps) are run on a laptop. Its
 worker processes end with the runner however it is stopped (Ctrl-C, ``kill``, ``kill -9``), so
 none trains on unseen into ``--out``.
+A complete run keeps its last checkpoint (at its final step), so the same command with a larger
+``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
+starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
+
 **One runner per folder.** A runner holds ``<out>/.runner.lock`` while it trains (released when
 it ends, however it ends); a second runner on the same ``--out`` stops at once with an error
 naming the first (pid, host, start time, command line). A lock record left by a killed runner is
 taken over, with a note on stderr. ``--summary-only`` only reads the runs and needs no lock; the
-summary, the table and the figure are replaced atomically.
-A complete run keeps its last checkpoint (at its final step), so the same command with a larger
-``--steps`` later *extends* it from there instead of skipping it; ``--force`` deletes it and
-starts over. Delete ``<env>/checkpoints/`` to free the space once no run needs extending.
+summary files and the figure are replaced atomically.
 
 **Going on with other settings.** ``--init-from DIR`` starts each run that has no checkpoint of its
 own from the kept final checkpoint of the same run (algorithm, env, seed) under ``DIR``, with this
@@ -246,7 +247,6 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     if failed:
         raise SystemExit(f"{len(failed)} run(s) failed")
     return records
-
 
 
 def _flag(field: str) -> str:

@@ -93,7 +93,8 @@ def runner_lock(out: Union[str, pathlib.Path], worker_wait_s: float = 30.0) -> I
         stale = read_holder(path)
         if stale is not None:
             print(
-                f"{folder}: taking over the lock of a runner that ended without releasing it ({describe_holder(stale)})",
+                f"{folder}: taking over the lock of a runner that ended without releasing it "
+                f"({describe_holder(stale)})",
                 file=sys.stderr,
                 flush=True,
             )
