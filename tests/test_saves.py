@@ -62,6 +62,8 @@ def test_saves_write_where_sb3_does(tmp_path):
     model.save(tmp_path / "b.model")  # and keeps a suffix it is given
     model.save_replay_buffer(tmp_path / "c")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.zip", "b.model", "c.pkl"]
+    (tmp_path / "plain").write_bytes(b"")  # saved files get the permissions of any new file
+    assert {p.stat().st_mode for p in tmp_path.iterdir()} == {(tmp_path / "plain").stat().st_mode}
     RL2DQN.load(tmp_path / "b.model")
 
 

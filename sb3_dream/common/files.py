@@ -18,6 +18,13 @@ def with_suffix(path: Union[str, pathlib.Path], suffix: str) -> pathlib.Path:
     return pathlib.Path(f"{path}.{suffix}") if path.suffix == "" else path
 
 
+def _mode_of_new_files() -> int:
+    """The permissions ``open`` gives a new file: 0666 less the process's umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 @contextlib.contextmanager
 def atomic_target(path: PathOrFile, suffix: str) -> Iterator[PathOrFile]:
     """Where to write ``path``: a temporary file in its folder, renamed over ``path`` (with SB3's
@@ -31,6 +38,7 @@ def atomic_target(path: PathOrFile, suffix: str) -> Iterator[PathOrFile]:
     final.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=f".partial.{suffix}", dir=final.parent)
     os.close(fd)
+    os.chmod(tmp, _mode_of_new_files())  # mkstemp's 0600 would hide the file from other users
     try:
         yield pathlib.Path(tmp)
         os.replace(tmp, final)
