@@ -120,19 +120,7 @@ def test_an_algorithm_is_added_by_registering_its_spec(monkeypatch, tmp_path):
 
 
 def test_runs_go_to_the_backend_given(tmp_path, capsys):
-    class Recording:
-        """A backend that runs nothing and records what it was given."""
-
-        def __init__(self):
-            self.runs = []
-
-        def slots(self, n_runs):
-            return n_runs
-
-        def run(self, runs, config, out):
-            self.runs += runs
-            for run in runs:
-                yield {"run": run, "status": "done"}
+    from test_runner_lock import Recording
 
     runs, backend = plan_runs(["dream", "rl2dqn"], [EnvSpec("MetaBandit-v0")], [0]), Recording()
     records = experiments.run_experiments(runs, RunConfig(), tmp_path, backend=backend)
