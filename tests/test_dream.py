@@ -962,7 +962,6 @@ def test_diagnose_compares_meta_test_with_the_privileged_execution_policy(bus_mo
         return bus_model.encode(np.full(len(idx), 40), noisy=False)
 
     monkeypatch.setattr("sb3_dream.dream.acting.decode", perfect_decoder)
-    monkeypatch.setattr("sb3_dream.dream.dream.decode", perfect_decoder)
     perfect = diagnose(bus_model, "MetaBus-v0", n_trials=3, seed=7, problem_ids=[40])
     assert perfect.decoder_error == pytest.approx(0.0, abs=1e-8)
     assert perfect.return_g == perfect.return_f
