@@ -10,12 +10,7 @@ The settings are the `fast` preset (learning starts after 100 trials, not the pa
 with a wider, recurrent execution Q-network learning from whole execution episodes; the README
 says what each changes.
 
-What to expect (seed 0, one torch thread, 2 CPU cores): -1.9 at 10K env steps, 0.58 at 90K
-(then a dip to -0.06 at 100K), 0.72 at 110K, 0.79 at 150K, 0.80 at 200K, where it prints
-"held-out return after 200000 env steps: 0.800 (optimal 0.800)". It took 36 minutes with other
-work sharing the cores; 60-70 seconds per 10K env steps while they were lightly loaded. Seeds 1
-and 2 reach 0.72 and 0.80 at 200K. models/dream_metabus_map.zip is this script's model at its
-defaults.
+What it prints at each step, and how long it takes: the README's Quickstart.
 """
 
 import argparse
