@@ -13,6 +13,7 @@ import gymnasium as gym
 from gymnasium.envs.registration import register, registry
 
 from dream_envs.agents import BatchTrialAgent, RandomAgent, ScriptedAgent, SingleTrialAgent
+from dream_envs.pearl_ub import pearl_ub
 from dream_envs.play import play_trial, play_trials, play_trials_batched
 from dream_envs.trial_env import EXECUTION, EXPLORATION, SPLITS, TrialEnv, check_trial_spec, public_info
 
@@ -68,6 +69,7 @@ __all__ = [
     "check_trial_spec",
     "env_splits",
     "make_oracle",
+    "pearl_ub",
     "play_trial",
     "play_trials",
     "play_trials_batched",
