@@ -8,6 +8,7 @@ The package, by concept:
 * :mod:`~sb3_dream.experiments.training`: one run (train, evaluate, record);
 * :mod:`~sb3_dream.experiments.checkpoints`: resuming, extending and starting from other runs;
 * :mod:`~sb3_dream.experiments.backends`: where runs execute (:class:`LocalPool`: processes here);
+* :mod:`~sb3_dream.experiments.ray_backend`: :class:`RayBackend`, the runs as Ray tasks (``[ray]`` extra);
 * :mod:`~sb3_dream.experiments.runner`: which runs are due, handed to a backend;
 * :mod:`~sb3_dream.experiments.lock`: one runner at a time per experiment folder;
 * :mod:`~sb3_dream.experiments.report`: summaries, the oracle's return, the figure.
@@ -27,6 +28,7 @@ from sb3_dream.experiments.checkpoints import Checkpointer, init_checkpoint
 from sb3_dream.experiments.cli import build_parser, main
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig, parse_kwargs
 from sb3_dream.experiments.lock import FolderLocked, runner_lock
+from sb3_dream.experiments.ray_backend import RayBackend, RayUnavailable
 from sb3_dream.experiments.report import (
     SUMMARY_COLUMNS,
     finished_runs,
@@ -47,6 +49,8 @@ __all__ = [
     "EnvSpec",
     "FolderLocked",
     "LocalPool",
+    "RayBackend",
+    "RayUnavailable",
     "Run",
     "RunConfig",
     "SUMMARY_COLUMNS",

@@ -97,6 +97,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from dream_envs import all_splits
 from sb3_dream.evaluation import BEST_TIES
 from sb3_dream.experiments.algorithms import ALGORITHMS, override_fields, preset_names
+from sb3_dream.experiments.backends import LocalPool
 from sb3_dream.experiments.config import EnvSpec, RunConfig, parse_kwargs
 from sb3_dream.experiments.lock import FolderLocked
 from sb3_dream.experiments.report import oracle_return, plot_curves, summarize, with_finished_runs, write_summary
@@ -135,7 +136,33 @@ def build_parser() -> argparse.ArgumentParser:
         parser.add_argument(
             _flag(field), nargs="*", default=[], metavar="KEY=VALUE", help=f"constructor overrides of {algos}"
         )
-    parser.add_argument("--jobs", type=int, default=None, help="parallel runs (default: the machine's cores)")
+    parser.add_argument(
+        "--backend",
+        default="local",
+        choices=("local", "ray"),
+        help="where the runs execute: local = processes of this machine (--jobs); ray = Ray tasks on a "
+        "cluster (--ray-address) or a local Ray",
+    )
+    parser.add_argument(
+        "--jobs", type=int, default=None, help="parallel runs of the local backend (default: the machine's cores)"
+    )
+    parser.add_argument(
+        "--ray-address",
+        default=None,
+        metavar="ADDR",
+        help="--backend ray: the cluster's HOST:PORT (ray start --head prints it), ray://HOST:PORT or auto; "
+        "default: a Ray started on this machine for the experiment",
+    )
+    parser.add_argument(
+        "--cpus-per-run", type=float, default=None, help="--backend ray: CPUs each run reserves (default: --threads)"
+    )
+    parser.add_argument("--gpus-per-run", type=float, default=0, help="--backend ray: GPUs each run reserves")
+    parser.add_argument(
+        "--max-retries",
+        type=int,
+        default=3,
+        help="--backend ray: reruns of a run whose worker died (it goes on from its checkpoint with --checkpoint-freq)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads per run")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--save-models", action="store_true", help="save each trained model next to its curve")
@@ -215,6 +242,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
         check_presets(runs, config)
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
+        backend = None if args.summary_only else _backend(args)
     except ValueError as error:
         raise SystemExit(f"error: {error}")
 
@@ -223,9 +251,14 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        records = [] if args.summary_only else run_experiments(runs, config, out, jobs=args.jobs, force=args.force)
-    except FolderLocked as error:
+        if backend is not None and args.backend == "ray" and args.ray_address is not None:
+            backend.connect()  # a bad address stops here, before anything is locked or trained
+        records = [] if args.summary_only else run_experiments(runs, config, out, force=args.force, backend=backend)
+    except (FolderLocked, ConnectionError) as error:
         raise SystemExit(f"error: {error}")
+    finally:
+        if backend is not None and args.backend == "ray":
+            backend.close()
 
     # The table and the figure cover every finished run under --out, not only this command's.
     runs = with_finished_runs(runs, out)
@@ -247,6 +280,25 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     if failed:
         raise SystemExit(f"{len(failed)} run(s) failed")
     return records
+
+
+def _backend(args: argparse.Namespace) -> Any:
+    """The backend that ``args`` ask for (``--backend`` and its options)."""
+    if args.backend == "local":
+        ray_flags = [f for f, v in (("--ray-address", args.ray_address), ("--cpus-per-run", args.cpus_per_run)) if v]
+        if ray_flags or args.gpus_per_run:
+            raise ValueError(f"{', '.join(ray_flags) or '--gpus-per-run'} needs --backend ray")
+        return LocalPool(args.jobs)
+    if args.jobs is not None:
+        raise ValueError("--jobs is the local backend's; with --backend ray, --cpus-per-run and the cluster set it")
+    from sb3_dream.experiments.ray_backend import RayBackend
+
+    return RayBackend(
+        address=args.ray_address,
+        cpus_per_run=args.cpus_per_run if args.cpus_per_run is not None else args.threads,
+        gpus_per_run=args.gpus_per_run,
+        max_retries=args.max_retries,
+    )
 
 
 def _flag(field: str) -> str:

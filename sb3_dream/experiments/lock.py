@@ -122,6 +122,20 @@ def hold_worker_lock(out: Union[str, pathlib.Path]) -> None:
     _worker_lock_fds.append(fd)
 
 
+@contextlib.contextmanager
+def worker_lock(out: Union[str, pathlib.Path]) -> Iterator[None]:
+    """Hold ``out``'s workers lock shared for the block (a worker process that outlives its runs,
+    as a Ray worker does, releases it after each run); nothing without ``flock``."""
+    if fcntl is None:
+        yield
+        return
+    fd = _open_locked(pathlib.Path(out) / WORKERS_LOCK_NAME, fcntl.LOCK_SH, block=True)
+    try:
+        yield
+    finally:
+        os.close(fd)
+
+
 def _acquire(folder: pathlib.Path, path: pathlib.Path) -> int:
     if fcntl is None:
         try:
