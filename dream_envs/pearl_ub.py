@@ -26,8 +26,6 @@ from __future__ import annotations
 from collections import defaultdict
 from typing import Callable, Dict, Hashable, List, Tuple
 
-import numpy as np
-
 from dream_envs.trial_env import TrialEnv
 
 # (weight, behaviour): how the optimal policy of a guessed problem acts on an instruction.
