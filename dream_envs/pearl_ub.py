@@ -19,6 +19,13 @@ episode that runs the optimal policy of problem T' (a fixed state-feedback polic
 not revised within the episode) in the true problem T. Where the optimal policy of T' has several
 optimal actions, each is taken with equal probability. Each env's derivation of R_T(pi*_{T'}, i) is
 in the docstring of its ``_*_returns`` function below; :func:`pearl_ub` dispatches on the env.
+
+This is one reading of the paper's definition: the posterior is updated from rewards only, so the
+reward-free exploration episode tells TS nothing. The paper's remark that TS "only explores one
+bus per episode (and never reads the map)" suggests another, in which TS also acts in the
+exploration episode (the optimal policy of a sampled problem, riding one bus) and the true
+posterior conditions on what that episode shows; that reading is not implemented here, and gives
+higher values on MetaBus and MetaCook.
 """
 
 from __future__ import annotations
