@@ -157,7 +157,10 @@ def test_samplers_give_valid_constructor_arguments(algo):
     small = {"buffer_size": 50, **({"execution_buffer_size": 100} if algo == "dream" else {})}
     model = algorithms()[algo]("MetaBandit-v0", **{**kwargs, **small})
     for key, value in kwargs.items():
-        assert getattr(model, key) == value
+        if key == "policy_kwargs":  # DREAM's execution body
+            assert model.policy.execution_hidden_sizes == value["execution_hidden_sizes"]
+        else:
+            assert getattr(model, key) == value
 
 
 @pytest.mark.parametrize("algo", ZOO_ALGOS)

@@ -62,7 +62,9 @@ def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
 
 
 def register() -> None:
-    """Add ``dream`` and ``rl2_dqn`` to rl-zoo3's algorithm table and Optuna samplers (idempotent).
+    """Add ``dream`` and ``rl2_dqn`` to rl-zoo3's algorithm table and Optuna samplers (idempotent);
+    ``--optimize`` then reports the held-out meta-test return of trial envs to Optuna
+    (:func:`sb3_dream.zoo.hyperparams_opt.meta_test_trial_eval_callback`).
 
     Also imports :mod:`dream_envs`, which registers the trial envs with Gymnasium.
 
@@ -76,8 +78,10 @@ def register() -> None:
             'sb3_dream.zoo needs rl-zoo3: pip install "sb3-dream[zoo]" (or pip install rl_zoo3)'
         ) from error
 
+    import rl_zoo3.exp_manager as zoo_exp_manager
+
     import dream_envs  # noqa: F401  (registers MetaBus-v0, MetaCook-v0, SignNav3D-v0, MetaBandit-v0)
-    from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS
+    from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS, meta_test_trial_eval_callback
 
     # Mutate the tables in place: train.py, enjoy.py and exp_manager.py all imported these same
     # dict objects, so the names become valid --algo choices everywhere.
@@ -85,6 +89,11 @@ def register() -> None:
     zoo_opt.HYPERPARAMS_SAMPLER.update(SAMPLERS)
     if hasattr(zoo_opt, "HYPERPARAMS_CONVERTER"):  # absent from older rl-zoo3 releases
         zoo_opt.HYPERPARAMS_CONVERTER.update(CONVERTERS)
+    # --optimize reports (and prunes on) the held-out meta-test return of trial envs.
+    if not getattr(zoo_exp_manager.TrialEvalCallback, "meta_test", False):
+        callback = meta_test_trial_eval_callback()
+        callback.meta_test = True
+        zoo_exp_manager.TrialEvalCallback = callback
 
 
 __all__ = ["HYPERPARAMS_DIR", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]

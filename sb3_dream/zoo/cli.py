@@ -27,7 +27,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import sys
-from typing import Callable, Iterator, List, Optional, Sequence, Tuple
+import time
+from typing import Any, Callable, Iterator, List, Optional, Sequence, Tuple
 
 from sb3_dream.zoo import SETTINGS, ZOO_ALGOS, hyperparams_path, register
 
@@ -88,8 +89,85 @@ def _pop_settings(argv: Sequence[str]) -> Tuple[Optional[str], List[str]]:
     return known.settings, rest
 
 
+def _pop_best_trial(argv: Sequence[str]) -> Tuple[bool, List[str]]:
+    """This wrapper's ``--best-trial`` flag and the rest of ``argv``."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--best-trial", action="store_true")
+    known, rest = parser.parse_known_args(list(argv))
+    return known.best_trial, rest
+
+
+def best_trial_args(argv: Sequence[str]) -> List[str]:
+    """``argv`` with the best trial of the Optuna study ``--storage``/``--study-name`` as ``-params``
+    (converted to constructor arguments as rl-zoo3's ``--trial-id`` does); the command's own
+    ``-params`` win over the trial's."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--storage", default=None)
+    parser.add_argument("--study-name", default=None)
+    parser.add_argument("--optimize", "--optimize-hyperparameters", "-optimize", action="store_true")
+    known = parser.parse_known_args(list(argv))[0]
+    if known.storage is None or known.study_name is None or known.optimize:
+        raise SystemExit("sb3-dream-zoo: --best-trial trains with a study's best trial: give --storage and "
+                         "--study-name, without --optimize")  # fmt: skip
+    import optuna
+    from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER
+
+    storage: Any = known.storage
+    if storage.endswith(".log"):  # rl-zoo3's journal-file storage
+        storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(storage))
+    try:
+        best = optuna.load_study(study_name=known.study_name, storage=storage).best_trial
+    except (KeyError, ValueError) as error:
+        raise SystemExit(f"sb3-dream-zoo: no best trial in study {known.study_name!r} at {known.storage}: {error}")
+    convert = HYPERPARAMS_CONVERTER.get(known.algo, dict)
+    params = {key: repr(value) for key, value in convert(best.params).items()}
+    rest: List[str] = []
+    tokens = iter(argv)
+    for token in tokens:
+        if token in ("-params", "--hyperparams"):
+            for value in tokens:
+                if value.startswith("-") and not value[1:2].isdigit():
+                    rest.append(value)  # the next flag
+                    break
+                key, _, given = value.partition(":")
+                params[key] = given  # the command's own win
+            continue
+        rest.append(token)
+    print(f"sb3-dream-zoo: trial {best.number} of study {known.study_name!r} (value {best.value}): {params}")
+    return [*rest, "-params", *(f"{key}:{value}" for key, value in params.items())]
+
+
+def create_study(argv: Sequence[str], attempts: int = 20) -> None:
+    """With ``--optimize --storage URL --study-name S``: create the study (or find it) before
+    rl-zoo3 does, retrying while other workers create the same database's tables at the same
+    moment (a fresh SQLite file or database is otherwise a race that one of them loses)."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--storage", default=None)
+    parser.add_argument("--study-name", default=None)
+    parser.add_argument("--optimize", "--optimize-hyperparameters", "-optimize", action="store_true")
+    known = parser.parse_known_args(list(argv))[0]
+    if not known.optimize or known.storage is None or known.study_name is None or known.storage.endswith(".log"):
+        return
+    import optuna
+
+    for attempt in range(attempts):
+        try:
+            optuna.create_study(
+                storage=known.storage, study_name=known.study_name, load_if_exists=True, direction="maximize"
+            )
+            return
+        except Exception:  # noqa: BLE001  (the database's own error types; the last one is raised)
+            if attempt == attempts - 1:
+                raise
+            time.sleep(0.2 + 0.1 * attempt)
+
+
 def train_args(argv: Sequence[str]) -> List[str]:
     """``argv`` of ``train`` with this package's defaults put first (so the user's flags win)."""
+    best_trial, argv = _pop_best_trial(argv)
+    if best_trial:
+        argv = best_trial_args(argv)
     settings, argv = _pop_settings(argv)
     known = _known_args(argv)
     if settings is not None and (known.algo not in ZOO_ALGOS or known.conf_file is not None):
@@ -150,6 +228,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         from rl_zoo3.train import train as script
 
         rest = train_args(rest)
+        create_study(rest)
     elif command == "enjoy":
         from rl_zoo3.enjoy import enjoy as script
 

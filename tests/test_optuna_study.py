@@ -1,0 +1,54 @@
+"""One Optuna study searched by two ``sb3-dream-zoo train --optimize`` processes, then its best trial trained."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("rl_zoo3")
+optuna = pytest.importorskip("optuna")
+
+from sb3_dream.dream import DREAM  # noqa: E402
+from sb3_dream.zoo.cli import main  # noqa: E402
+from sb3_dream.zoo.hyperparams_opt import EXECUTION_BODIES  # noqa: E402
+
+TINY = ["-params", "buffer_size:100", "execution_buffer_size:200"]
+
+
+def test_two_workers_share_one_sqlite_study_and_its_best_trial_trains(tmp_path):
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    common = ["--algo", "dream", "--env", "MetaBandit-v0", "--storage", storage, "--study-name", "bandit"]
+    optimize = [
+        "--optimize", "--n-trials", "2", "-n", "100", "--n-evaluations", "1", "--eval-episodes", "4",
+        "--no-optim-plots", "--num-threads", "1", "--sampler", "random", "--pruner", "none",
+    ]  # fmt: skip
+    workers = [
+        subprocess.Popen(
+            [sys.executable, "-m", "sb3_dream.zoo", "train", *common, *optimize, "--seed", str(k),
+             "-f", str(tmp_path / f"logs{k}"), *TINY],  # fmt: skip
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for k in range(2)
+    ]
+    outputs = [worker.communicate(timeout=300)[0] for worker in workers]
+    assert [w.returncode for w in workers] == [0, 0], outputs
+    study = optuna.load_study(study_name="bandit", storage=storage)
+    trials = study.get_trials(states=[optuna.trial.TrialState.COMPLETE])
+    assert len(trials) == 4  # two from each worker, in one study
+    assert all(0.0 <= t.value <= 1.0 for t in trials)  # the held-out meta-test return, a success rate here
+    assert {"execution_body", "reward_penalty", "execution_sampling", "eps_decay_steps"} <= set(trials[0].params)
+
+    best = study.best_trial
+    logs = tmp_path / "best"
+    main(["train", *common, "--best-trial", "-n", "50", "--seed", "0", "--num-threads", "1", "-f", str(logs), *TINY])
+    model = DREAM.load(logs / "dream" / "MetaBandit-v0_1" / "MetaBandit-v0.zip")
+    assert model.reward_penalty == pytest.approx(best.params["reward_penalty"])
+    assert model.lr_schedule(1.0) == pytest.approx(best.params["learning_rate"])
+    assert model.execution_sampling == best.params["execution_sampling"] and model.buffer_size == 100
+    assert model.policy.execution_hidden_sizes == EXECUTION_BODIES[best.params["execution_body"]]
+    with pytest.raises(SystemExit, match="--best-trial trains with a study's best trial"):
+        main(["train", "--algo", "dream", "--env", "MetaBandit-v0", "--best-trial"])
