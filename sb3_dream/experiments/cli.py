@@ -38,6 +38,14 @@ sync interval goes on to 1.2M with another, into its own ``--out``. The run's JS
 parent (``init_from``: its ``--out`` and env steps), also once the run is resumed or extended from
 its own checkpoints.
 
+**On a Ray cluster.** ``--backend ray`` runs each run as a Ray task
+(:mod:`~sb3_dream.experiments.ray_backend`; ``pip install "sb3-dream[ray]"``): on the cluster at
+``--ray-address HOST:PORT`` (``ray start --head`` prints it) or, without it, on a Ray started on
+this machine for the experiment. Each run reserves ``--cpus-per-run`` CPUs (default ``--threads``)
+and ``--gpus-per-run`` GPUs; a run whose worker dies is rerun up to ``--max-retries`` times, from
+its last checkpoint with ``--checkpoint-freq``. The tasks write into ``--out``, which must be on a
+filesystem that every node mounts at the same path.
+
 **Outputs** under ``--out``::
 
     <env>/<algo>_seed<k>.csv          learning curve on the held-out split (--eval-splits test)

@@ -16,6 +16,10 @@ envs; a flag given on the command line always wins, as the defaults are put firs
   of the README's measured runs. With a trial env and no ``--eval-env-kwargs``, the zoo's
   evaluation (``--eval-freq``) runs on the held-out problems: the eval env gets ``--env-kwargs``
   plus ``split:'test'``.
+* ``train --optimize --storage URL --study-name S``: the study is created (or found) before
+  rl-zoo3 runs, retrying while other workers create the same database, so that several workers,
+  on one machine or many, add trials to one study. ``train --best-trial`` (this wrapper's flag,
+  with ``--storage`` and ``--study-name``) trains with the study's best trial as ``-params``.
 * ``enjoy`` / ``record_video``: ``--folder`` defaults to ``logs`` (where ``train`` writes) rather
   than the zoo's pretrained-agent folder, which would try to download from the Hugging Face hub;
   ``enjoy`` adds ``--no-render`` for envs without a "human" render mode (the trial envs render
@@ -41,6 +45,8 @@ Examples:
   sb3-dream-zoo train --algo dream --env MetaCook-v0 --settings measured   # the README's runs
   sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 -n 400
   sb3-dream-zoo train --algo rl2_dqn --env MetaBus-v0 --optimize --n-trials 20 -n 50000
+  sb3-dream-zoo train --algo dream --env MetaBus-v0 --optimize --storage sqlite:///s.db --study-name s
+  sb3-dream-zoo train --algo dream --env MetaBus-v0 --best-trial --storage sqlite:///s.db --study-name s
 '<command> --help' lists the command's rl-zoo3 flags."""
 
 
