@@ -18,7 +18,7 @@ import pytest
 from test_experiments import TINY_DREAM
 
 from sb3_dream import experiments
-from sb3_dream.experiments import load_curve
+from sb3_dream.experiments import load_curve, ray_backend
 
 ray = pytest.importorskip("ray")
 
@@ -35,7 +35,8 @@ def _free_port() -> int:
 def ray_address(tmp_path_factory):
     """``HOST:PORT`` of a Ray head with 2 CPUs, ended (with its workers) after the module's tests."""
     port = _free_port()
-    log = open(tmp_path_factory.mktemp("ray") / "head.log", "w")
+    log_path = tmp_path_factory.mktemp("ray") / "head.log"
+    log = open(log_path, "w")
     head = subprocess.Popen(
         [
             os.path.join(os.path.dirname(sys.executable), "ray"), "start", "--head", "--block",
@@ -45,18 +46,22 @@ def ray_address(tmp_path_factory):
         stdout=log,
         stderr=subprocess.STDOUT,
         start_new_session=True,
+        env={**os.environ, "RAY_AUTH_MODE": "disabled"},
     )
     address = f"127.0.0.1:{port}"
+    # The same for the runner here: a token in ~/.ray (which a local Ray may have made) would
+    # otherwise turn token authentication on for the head but not for a driver given its address.
+    patch = pytest.MonkeyPatch()
+    patch.setenv("RAY_AUTH_MODE", "disabled")
     try:
-        deadline = time.monotonic() + 60
-        while subprocess.run(
-            [os.path.join(os.path.dirname(sys.executable), "ray"), "status", "--address", address],
-            capture_output=True,
-        ).returncode:
-            assert head.poll() is None and time.monotonic() < deadline, "the Ray head did not start"
-            time.sleep(0.5)
+        deadline = time.monotonic() + 120
+        # `ray start --block` says so once the node's processes are up.
+        while "will now block forever" not in log_path.read_text():
+            assert head.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.2)
         yield address
     finally:
+        patch.undo()
         head.send_signal(signal.SIGTERM)  # `ray start --block` stops the node's processes on SIGTERM
         try:
             head.wait(60)
@@ -84,29 +89,37 @@ def test_the_grid_on_ray_gives_the_local_pool_s_summary(ray_address, tmp_path, c
     grid = dict(seeds=[0, 1], steps=200, algos=("dream", "rl2dqn"))
     assert [r["status"] for r in experiments.main(_argv(local, *grid.values(), "--jobs", "2"))] == ["done"] * 4
     capsys.readouterr()
-    records = experiments.main(_argv(on_ray, *grid.values(), "--backend", "ray", "--ray-address", ray_address))
-    assert [r["status"] for r in records] == ["done"] * 4
-    printed = capsys.readouterr().out
-    assert "running 4 run(s), 2 at a time" in printed
-    assert all(f"[{k}/4] done " in printed for k in range(1, 5))  # a line per run as it arrives
-    assert _summary(on_ray) == _summary(local) and len(_summary(local)) == 2
-    for path in (local / "MetaBandit-v0").glob("*.csv"):
-        np.testing.assert_array_equal(load_curve(path)["mean"], load_curve(on_ray / path.relative_to(local))["mean"])
-    assert not ray.is_initialized()  # the runner disconnected
+    sent_back = tmp_path / "sent_back"  # --ray-files driver: the tasks send the runs' files back
+    for out, files in ((on_ray, "shared"), (sent_back, "driver")):
+        argv = _argv(out, *grid.values(), "--backend", "ray", "--ray-address", ray_address, "--ray-files", files)
+        assert [r["status"] for r in experiments.main(argv)] == ["done"] * 4
+        printed = capsys.readouterr().out
+        assert "running 4 run(s), 2 at a time" in printed
+        assert all(f"[{k}/4] done " in printed for k in range(1, 5))  # a line per run as it arrives
+        assert _summary(out) == _summary(local) and len(_summary(local)) == 2
+        for path in (local / "MetaBandit-v0").glob("*.csv"):
+            np.testing.assert_array_equal(load_curve(path)["mean"], load_curve(out / path.relative_to(local))["mean"])
+        assert sorted(p.name for p in (out / "MetaBandit-v0").iterdir()) == sorted(
+            p.name for p in (local / "MetaBandit-v0").iterdir()
+        )
+        assert not ray.is_initialized()  # the runner disconnected
 
     # Run again: every run is finished, skipped without starting anything.
     again = experiments.main(_argv(on_ray, *grid.values(), "--backend", "ray", "--ray-address", ray_address))
     assert [r["status"] for r in again] == ["skipped"] * 4
 
 
-def _kill_after_checkpoint(checkpoint: pathlib.Path, title: str, killed: list) -> None:
-    """Kill -9 the process titled ``title`` (the Ray worker of a run) once ``checkpoint`` is past 100 steps."""
+def _kill_after_checkpoint(checkpoints, title: str, killed: list) -> None:
+    """Kill -9 the process titled ``title`` (the Ray worker of a run) once one of the files that
+    ``checkpoints()`` lists records 200 env steps or more."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        try:
-            steps = json.loads(checkpoint.read_text())["env_steps"]
-        except (OSError, ValueError, KeyError):
-            steps = 0
+        steps = 0
+        for checkpoint in checkpoints():
+            try:
+                steps = max(steps, json.loads(checkpoint.read_text())["env_steps"])
+            except (OSError, ValueError, KeyError):
+                pass
         if steps >= 200:
             for proc in pathlib.Path("/proc").iterdir():
                 try:
@@ -121,25 +134,36 @@ def _kill_after_checkpoint(checkpoint: pathlib.Path, title: str, killed: list) -
 
 
 @pytest.mark.skipif(not pathlib.Path("/proc").is_dir(), reason="finds the worker under /proc")
-def test_a_killed_worker_is_retried_and_goes_on_from_its_checkpoint(ray_address, tmp_path):
+@pytest.mark.parametrize("files", ["shared", "driver"])
+def test_a_killed_worker_is_retried_and_goes_on_from_its_checkpoint(ray_address, tmp_path, files):
+    """The worker is killed after a checkpoint: Ray reruns the run, which goes on from there
+    (with --ray-files driver, from the checkpoint it left in its node's folder)."""
     out = tmp_path / "ray"
     run = experiments.Run("dream", experiments.EnvSpec("MetaBandit-v0"), 0)
+    began = time.time()
+
+    def checkpoints():
+        if files == "shared":
+            return [run.checkpoint_path(out)]
+        found = ray_backend.SCRATCH.glob(f"*/{run.checkpoint_path(pathlib.Path())}")
+        return [path for path in found if path.stat().st_mtime >= began]
+
     killed: list = []
     killer = threading.Thread(
-        target=_kill_after_checkpoint,
-        args=(run.checkpoint_path(out), "ray::dream MetaBandit-v0 seed 0", killed),
-        daemon=True,
+        target=_kill_after_checkpoint, args=(checkpoints, "ray::dream MetaBandit-v0 seed 0", killed), daemon=True
     )
     killer.start()
-    argv = _argv(out, [0], 1500, ("dream",), "--backend", "ray", "--ray-address", ray_address)
+    argv = _argv(out, [0], 1500, ("dream",), "--backend", "ray", "--ray-address", ray_address, "--ray-files", files)
     (record,) = experiments.main([*argv, "--checkpoint-freq", "100"])
     killer.join()
     assert killed, "the run ended before its worker was killed"
     assert record["status"] == "done"
     info = json.loads(run.info_path(out).read_text())
     assert info["resumed_from"] is not None and killed[0] <= info["resumed_from"] < 1500
-    # Every evaluation once, in order: none lost with the worker, none repeated by the retry.
+    # Every evaluation once, in order: none lost with the worker, none repeated by the rerun.
     np.testing.assert_array_equal(load_curve(run.curve_path(out))["env_steps"], np.arange(0, 1501, 100))
+    assert json.loads(run.checkpoint_path(out).read_text())["env_steps"] == 1500  # kept, to extend the run
+    assert not list(ray_backend.SCRATCH.glob("*/MetaBandit-v0"))  # the node's folder of the run is gone
 
 
 def test_an_address_where_no_ray_runs_is_a_clear_error(tmp_path):

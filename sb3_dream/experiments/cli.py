@@ -166,6 +166,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--gpus-per-run", type=float, default=0, help="--backend ray: GPUs each run reserves")
     parser.add_argument(
+        "--ray-files",
+        default="shared",
+        choices=("shared", "driver"),
+        help="--backend ray: shared = the tasks write into --out, on a filesystem every node shares at the same "
+        "path; driver = each task trains in a folder of its node and sends the run's files back to --out here",
+    )
+    parser.add_argument(
         "--max-retries",
         type=int,
         default=3,
@@ -294,9 +301,13 @@ def _backend(args: argparse.Namespace) -> Any:
     """The backend that ``args`` ask for (``--backend`` and its options)."""
     if args.backend == "local":
         ray_flags = [f for f, v in (("--ray-address", args.ray_address), ("--cpus-per-run", args.cpus_per_run)) if v]
-        if ray_flags or args.gpus_per_run:
-            raise ValueError(f"{', '.join(ray_flags) or '--gpus-per-run'} needs --backend ray")
+        ray_flags += ["--gpus-per-run"] if args.gpus_per_run else []
+        ray_flags += ["--ray-files"] if args.ray_files != "shared" else []
+        if ray_flags:
+            raise ValueError(f"{', '.join(ray_flags)} needs --backend ray")
         return LocalPool(args.jobs)
+    if args.ray_files == "driver" and args.init_from:
+        raise ValueError("--init-from reads the parent runs from a shared filesystem: use --ray-files shared")
     if args.jobs is not None:
         raise ValueError("--jobs is the local backend's; with --backend ray, --cpus-per-run and the cluster set it")
     from sb3_dream.experiments.ray_backend import RayBackend
@@ -306,6 +317,7 @@ def _backend(args: argparse.Namespace) -> Any:
         cpus_per_run=args.cpus_per_run if args.cpus_per_run is not None else args.threads,
         gpus_per_run=args.gpus_per_run,
         max_retries=args.max_retries,
+        files=args.ray_files,
     )
 
 
