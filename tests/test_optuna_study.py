@@ -52,3 +52,27 @@ def test_two_workers_share_one_sqlite_study_and_its_best_trial_trains(tmp_path):
     assert model.policy.execution_hidden_sizes == EXECUTION_BODIES[best.params["execution_body"]]
     with pytest.raises(SystemExit, match="--best-trial trains with a study's best trial"):
         main(["train", "--algo", "dream", "--env", "MetaBandit-v0", "--best-trial"])
+
+
+def test_best_trial_becomes_params_and_the_command_s_own_params_win(tmp_path):
+    from optuna.distributions import CategoricalDistribution, FloatDistribution
+
+    from sb3_dream.zoo import register
+    from sb3_dream.zoo.cli import best_trial_args
+
+    register()
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    study = optuna.create_study(storage=storage, study_name="s", direction="maximize")
+    distributions = {
+        "learning_rate": FloatDistribution(1e-5, 1e-3, log=True),
+        "execution_body": CategoricalDistribution(list(EXECUTION_BODIES)),
+    }
+    for value, lr in ((0.9, 1e-4), (0.2, 1e-3)):  # the best is trial 0
+        params = {"learning_rate": lr, "execution_body": "128x128"}
+        study.add_trial(optuna.trial.create_trial(params=params, distributions=distributions, value=value))
+    argv = ["--algo", "dream", "--storage", storage, "--study-name", "s", "-params", "execution_body_unused:1",
+            "learning_rate:5e-4", "-n", "10"]  # fmt: skip
+    assert best_trial_args(argv) == [
+        "--algo", "dream", "--storage", storage, "--study-name", "s", "-n", "10", "-params",
+        "learning_rate:5e-4", "policy_kwargs:{'execution_hidden_sizes': (128, 128)}", "execution_body_unused:1",
+    ]  # fmt: skip

@@ -48,9 +48,9 @@ from sb3_dream.experiments.config import Run, RunConfig
 from sb3_dream.experiments.lock import LOCK_NAME, read_holder, worker_lock
 
 FILES = ("shared", "driver")  # where the runs' files are written: RayBackend(files=...)
-DEFAULT_PORT = 6379
+DEFAULT_PORT = 6379  # Ray's head port when an address names no port
 # Each node's folder for the runs of files="driver" (--ray-files driver).
-SCRATCH = pathlib.Path(tempfile.gettempdir()) / "sb3-dream-ray"  # Ray's head port when an address names no port
+SCRATCH = pathlib.Path(tempfile.gettempdir()) / "sb3-dream-ray"
 
 
 class RayUnavailable(ConnectionError):

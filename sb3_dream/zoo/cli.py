@@ -95,6 +95,17 @@ def _pop_settings(argv: Sequence[str]) -> Tuple[Optional[str], List[str]]:
     return known.settings, rest
 
 
+def _study_args(argv: Sequence[str]) -> argparse.Namespace:
+    """rl-zoo3's flags of an Optuna study in ``argv`` (``--algo``, ``--storage``, ``--study-name``,
+    ``--optimize``), read without consuming or validating anything."""
+    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    parser.add_argument("--algo", default="ppo")
+    parser.add_argument("--storage", default=None)
+    parser.add_argument("--study-name", default=None)
+    parser.add_argument("--optimize", "--optimize-hyperparameters", "-optimize", action="store_true")
+    return parser.parse_known_args(list(argv))[0]
+
+
 def _pop_best_trial(argv: Sequence[str]) -> Tuple[bool, List[str]]:
     """This wrapper's ``--best-trial`` flag and the rest of ``argv``."""
     parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
@@ -107,12 +118,7 @@ def best_trial_args(argv: Sequence[str]) -> List[str]:
     """``argv`` with the best trial of the Optuna study ``--storage``/``--study-name`` as ``-params``
     (converted to constructor arguments as rl-zoo3's ``--trial-id`` does); the command's own
     ``-params`` win over the trial's."""
-    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
-    parser.add_argument("--algo", default="ppo")
-    parser.add_argument("--storage", default=None)
-    parser.add_argument("--study-name", default=None)
-    parser.add_argument("--optimize", "--optimize-hyperparameters", "-optimize", action="store_true")
-    known = parser.parse_known_args(list(argv))[0]
+    known = _study_args(argv)
     if known.storage is None or known.study_name is None or known.optimize:
         raise SystemExit("sb3-dream-zoo: --best-trial trains with a study's best trial: give --storage and "
                          "--study-name, without --optimize")  # fmt: skip
@@ -148,11 +154,7 @@ def create_study(argv: Sequence[str], attempts: int = 20) -> None:
     """With ``--optimize --storage URL --study-name S``: create the study (or find it) before
     rl-zoo3 does, retrying while other workers create the same database's tables at the same
     moment (a fresh SQLite file or database is otherwise a race that one of them loses)."""
-    parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
-    parser.add_argument("--storage", default=None)
-    parser.add_argument("--study-name", default=None)
-    parser.add_argument("--optimize", "--optimize-hyperparameters", "-optimize", action="store_true")
-    known = parser.parse_known_args(list(argv))[0]
+    known = _study_args(argv)
     if not known.optimize or known.storage is None or known.study_name is None or known.storage.endswith(".log"):
         return
     import optuna
