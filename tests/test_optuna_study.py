@@ -76,3 +76,34 @@ def test_best_trial_becomes_params_and_the_command_s_own_params_win(tmp_path):
         "--algo", "dream", "--storage", storage, "--study-name", "s", "-n", "10", "-params",
         "learning_rate:5e-4", "policy_kwargs:{'execution_hidden_sizes': (128, 128)}", "execution_body_unused:1",
     ]  # fmt: skip
+
+
+def test_trials_report_and_are_pruned_on_the_held_out_meta_test_return(monkeypatch):
+    import rl_zoo3.exp_manager
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_dream.evaluation import evaluate_meta
+    from sb3_dream.zoo import register
+
+    register()
+    register()  # idempotent: the callback is wrapped once
+    callback_class = rl_zoo3.exp_manager.TrialEvalCallback
+    assert callback_class.meta_test and callback_class.__mro__[1].__name__ == "TrialEvalCallback"
+    study = optuna.create_study(direction="maximize")
+    trial = study.ask()
+    model = DREAM("MetaBandit-v0", buffer_size=50, execution_buffer_size=100, seed=0)
+    eval_env = make_vec_env("MetaBandit-v0", n_envs=1, env_kwargs={"split": "test"})  # as the zoo makes it
+    callback = callback_class(eval_env, trial, n_eval_episodes=8, eval_freq=1)
+    callback.init_callback(model)
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return evaluate_meta(*args, **kwargs)
+
+    monkeypatch.setattr("sb3_dream.evaluation.evaluate_meta", spy)
+    assert callback.on_step()
+    assert [(c["split"], c["n_trials"]) for c in calls] == [("test", 8)]
+    expected = evaluate_meta(model, "MetaBandit-v0", n_trials=8, split="test").mean
+    assert callback.last_mean_reward == pytest.approx(expected)
+    assert study.trials[0].intermediate_values == {1: pytest.approx(expected)}
