@@ -39,7 +39,7 @@ def ray_address(tmp_path_factory):
     log = open(log_path, "w")
     head = subprocess.Popen(
         [
-            os.path.join(os.path.dirname(sys.executable), "ray"), "start", "--head", "--block",
+            sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",  # the `ray` command
             "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2", "--num-gpus=0",
             "--include-dashboard=false", "--disable-usage-stats", "--object-store-memory=80000000",
         ],  # fmt: skip
