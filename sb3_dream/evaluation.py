@@ -22,6 +22,7 @@ import dream_envs
 from dream_envs import play_trials, play_trials_batched
 from dream_envs.checks import check_choice, check_positive_int
 from sb3_dream.common.agents import as_batch_trial_agent, as_trial_agent
+from sb3_dream.common.files import atomic_target
 
 
 @dataclass
@@ -401,10 +402,9 @@ class MetaEvalCallback(BaseCallback):
         if self._is_best(result.mean):
             self.best_mean_reward, self.best_env_steps = float(result.mean), int(self.num_timesteps)
             if self.best_model_save_path is not None:
-                os.makedirs(self.best_model_save_path, exist_ok=True)
-                path = os.path.join(self.best_model_save_path, "best_model.zip")
-                self.model.save(path + ".partial.zip")  # atomic: a reader never sees half a model
-                os.replace(path + ".partial.zip", path)
+                # atomic for any SB3 model: a reader never sees half a model
+                with atomic_target(os.path.join(self.best_model_save_path, "best_model.zip"), "zip") as tmp:
+                    self.model.save(tmp)
         if self.csv_path:
             with open(self.csv_path, "a", newline="") as f:
                 csv.writer(f).writerow([row[k] for k in CURVE_COLUMNS])

@@ -13,9 +13,9 @@ PathOrFile = Union[str, pathlib.Path, io.BufferedIOBase]
 
 
 def with_suffix(path: Union[str, pathlib.Path], suffix: str) -> pathlib.Path:
-    """``path`` as SB3 writes it: with ``.suffix`` added when it has none."""
+    """``path`` as SB3 writes it: with ``.suffix`` added when it has none (and ``suffix`` is not empty)."""
     path = pathlib.Path(path)
-    return pathlib.Path(f"{path}.{suffix}") if path.suffix == "" else path
+    return pathlib.Path(f"{path}.{suffix}") if path.suffix == "" and suffix else path
 
 
 def _mode_of_new_files() -> int:

@@ -110,7 +110,7 @@ class TrialOffPolicyAlgorithm(OffPolicyAlgorithm):
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        # SB3 turns train_freq into a TrainFreq in _setup_model; ours stays one vectorised step.
+        # A rollout stays one vectorised step, also for a model saved with another train_freq.
         self.train_freq = TrainFreq(1, TrainFrequencyUnit.STEP)
 
     def check_trial_env(self, env: Union[VecEnv, gym.Env], what: str, ignore: Sequence[str] = ()) -> None:

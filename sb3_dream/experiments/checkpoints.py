@@ -16,6 +16,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from sb3_dream.common.files import atomic_target
 from sb3_dream.experiments.config import Run, RunConfig
 
 
@@ -63,10 +64,11 @@ class Checkpointer:
         checkpoint, so that a resumed run goes on selecting among all its evaluations."""
         self.folder.mkdir(parents=True, exist_ok=True)
         stem = f"{self.run.name}.{model.num_timesteps}"
-        model.save(self.folder / f"{stem}.partial.zip")
-        os.replace(self.folder / f"{stem}.partial.zip", self.folder / f"{stem}.zip")
-        model.save_replay_buffer(self.folder / f"{stem}.partial.pkl")
-        os.replace(self.folder / f"{stem}.partial.pkl", self.folder / f"{stem}.pkl")
+        # each file atomic whatever the algorithm: a checkpoint is never read half-written
+        with atomic_target(self.folder / f"{stem}.zip", "zip") as tmp:
+            model.save(tmp)
+        with atomic_target(self.folder / f"{stem}.pkl", "pkl") as tmp:
+            model.save_replay_buffer(tmp)
         record = {
             "env_steps": model.num_timesteps,
             "model": f"{stem}.zip",
@@ -78,17 +80,16 @@ class Checkpointer:
         }
         best_file = None if best is None else pathlib.Path(best.best_model_save_path) / "best_model.zip"
         if best_file is not None and best_file.exists() and best.best_env_steps is not None:
-            shutil.copyfile(best_file, self.folder / f"{stem}.best.partial.zip")
-            os.replace(self.folder / f"{stem}.best.partial.zip", self.folder / f"{stem}.best.zip")
+            with atomic_target(self.folder / f"{stem}.best.zip", "zip") as tmp:
+                shutil.copyfile(best_file, tmp)
             record["best"] = {
                 "model": f"{stem}.best.zip",
                 "split": best.split,
                 "env_steps": best.best_env_steps,
                 "mean": best.best_mean_reward,
             }
-        tmp = self.path.with_suffix(".json.partial")
-        tmp.write_text(json.dumps(record, default=str))
-        os.replace(tmp, self.path)
+        with atomic_target(self.path, "json") as tmp:
+            tmp.write_text(json.dumps(record, default=str))
         self.remove(keep=stem)
 
     def saved_steps(self) -> Optional[int]:

@@ -42,6 +42,7 @@ import tempfile
 import time
 from typing import Any, Dict, Iterator, Optional, Sequence, Tuple
 
+from sb3_dream.common.files import atomic_target
 from sb3_dream.experiments.backends import run_worker
 from sb3_dream.experiments.checkpoints import Checkpointer
 from sb3_dream.experiments.config import Run, RunConfig
@@ -153,10 +154,8 @@ def _write_files(files: Dict[str, bytes], out: pathlib.Path) -> None:
 
     for rel in sorted(files, key=order):
         target = out / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(target.name + ".partial")
-        tmp.write_bytes(files[rel])
-        os.replace(tmp, target)
+        with atomic_target(target, target.suffix[1:]) as tmp:
+            tmp.write_bytes(files[rel])
 
 
 def _scratch(holder: Optional[Dict[str, Any]], out: pathlib.Path, run: Run) -> pathlib.Path:

@@ -9,6 +9,7 @@ import shutil
 import time
 from typing import Any, Dict
 
+from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import format_mean_ci
 from sb3_dream.experiments.algorithms import algorithm_class, algorithm_spec, load_with_overrides, make_model
 from sb3_dream.experiments.checkpoints import (
@@ -108,9 +109,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         # Kept once the run is complete, so that a larger budget later extends it.
         checkpointer.save(model, {cb.split: cb.results for cb in callbacks}, seconds, best)
     if config.save_models:
-        tmp = run.model_path(out).with_name(run.name + ".partial.zip")
-        model.save(tmp)
-        os.replace(tmp, run.model_path(out))
+        with atomic_target(run.model_path(out), "zip") as tmp:
+            model.save(tmp)
     finals = {split: cb.results[-1] for split, cb in zip(config.eval_splits, callbacks)}
     info = {
         "algo": run.algo,
@@ -127,9 +127,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         info["best"] = _meta_test_best(run, config, best, tag)
     if spec.report is not None:
         info.update(spec.report(model, run, config, tag))
-    tmp_info = run.info_path(out).with_suffix(".json.partial")
-    tmp_info.write_text(json.dumps(info, indent=2, default=str))
-    os.replace(tmp_info, run.info_path(out))
+    with atomic_target(run.info_path(out), "json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2, default=str))
     # The held-out curve (the completion mark) is renamed last.
     for split in sorted(config.eval_splits, key=lambda s: s == "test"):
         os.replace(partial[split], run.curve_path(out, split))
