@@ -43,6 +43,8 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
+from dream_envs.checks import check_choice, check_positive_int
+
 METHODS = ("rl2", "dream")
 LABELS = {"rl2": "RL²", "dream": "DREAM"}
 
@@ -52,13 +54,14 @@ class TabularMetaLearner:
     trial in every seed and applies the update."""
 
     def __init__(self, method: str, n_actions: int, horizon: int, n_seeds: int, epsilon: float, seed: int) -> None:
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        check_choice("method", method, METHODS)
         if not 0.0 <= epsilon <= 1.0:
             raise ValueError(f"epsilon must lie in [0, 1], got {epsilon}")
+        # the bandit needs an action besides the revealing one a_*
+        n_actions, horizon = check_positive_int("n_actions", n_actions, 2), check_positive_int("horizon", horizon)
         self.method, self.epsilon = method, float(epsilon)
-        self.n = n = int(n_actions) ** int(horizon)  # sequences = problems
-        self.n_seeds = s = int(n_seeds)
+        self.n = n = n_actions**horizon  # sequences = problems
+        self.n_seeds = s = check_positive_int("n_seeds", n_seeds)
         self.rng = np.random.default_rng(seed)
         self.rows = np.arange(s)
         # tau index: a for a != a_* (= 0), n + T for (a_*, T).

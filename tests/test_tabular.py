@@ -60,3 +60,13 @@ def test_cli_writes_figures(tmp_path):
         rows = list(csv.DictReader(f))
     assert [(r["method"], r["n_actions"]) for r in rows] == [("rl2", "2"), ("dream", "2"), ("rl2", "3"), ("dream", "3")]
     assert all(float(r["ratio_rl2_over_dream"]) > 1 for r in rows)
+
+
+@pytest.mark.parametrize(
+    "name, value",
+    [("method", "ppo"), ("n_actions", 1), ("horizon", 0), ("n_seeds", 0), ("epsilon", 1.5)],
+)
+def test_bad_arguments_name_themselves(name, value):
+    kwargs = dict(method="dream", n_actions=4, horizon=1, n_seeds=2, epsilon=0.1, seed=0)
+    with pytest.raises(ValueError, match=name):
+        TabularMetaLearner(**{**kwargs, name: value})

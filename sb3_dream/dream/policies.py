@@ -209,7 +209,7 @@ class ExecutionQNetwork(nn.Module):
             return current, following.detach()
         current = self.embed(batch.states, batch.instructions, batch.steps)
         with th.no_grad():
-            following = self.embed(batch.next_states, batch.instructions, batch.steps + 1)
+            following = self.next_inputs(batch)
         return current, following
 
     def next_inputs(self, batch: ExecutionBatch) -> th.Tensor:
