@@ -125,6 +125,22 @@ def make_env(parser: argparse.ArgumentParser, args: argparse.Namespace, kwargs: 
         raise  # unreachable: parser.error exits
 
 
+def check_model_env(parser: argparse.ArgumentParser, path: str, model: Any, env: gym.Env) -> None:
+    """Refuse a model trained in another trial shape (it would act on garbage, or fail deep inside):
+    its trial spec where it kept one, its observation space always (a slimmed model keeps no spec)."""
+    what = "the env (--env, --env-kwargs)"
+    try:
+        if hasattr(model, "check_trial_env"):
+            model.check_trial_env(env, what, ignore=("n_exec_episodes",))
+    except ValueError as error:
+        parser.error(f"--model {path}: {error}")
+    space = getattr(model, "observation_space", None)
+    if space is not None and space != env.observation_space:
+        parser.error(
+            f"--model {path}: {what} does not match the model: the model observes {space}, the env {env.observation_space}"
+        )
+
+
 def draw_explorations(
     args: argparse.Namespace, env: gym.Env, models: Dict[str, Any], out: pathlib.Path
 ) -> Dict[str, Any]:
@@ -184,11 +200,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
             model = load_model(path)
         except ValueError as error:
             parser.error(f"--model {path}: {error}")
-        if hasattr(model, "check_trial_env"):  # a model played in another trial shape acts on garbage
-            try:
-                model.check_trial_env(env, "the env (--env, --env-kwargs)", ignore=("n_exec_episodes",))
-            except ValueError as error:
-                parser.error(f"--model {path}: {error}")
+        check_model_env(parser, path, model, env)
         models[label] = model
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
