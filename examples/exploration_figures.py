@@ -41,7 +41,7 @@ import gymnasium as gym
 import dream_envs
 from dream_envs import make_oracle
 from dream_envs.figures import FAMILIES, PATH_COLUMNS, exploration_figure, exploration_paths, held_out_problems, path_rows
-from sb3_dream.code_figures import CODE_COLUMNS, EMBEDDINGS, code_figure, dream_codes
+from sb3_dream.code_figures import CODE_COLUMNS, EMBEDDINGS, code_distances, code_figure, dream_codes
 from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import as_trial_agent
 from sb3_dream.experiments import parse_kwargs
@@ -179,6 +179,11 @@ def draw_codes(args: argparse.Namespace, kwargs: Dict[str, Any], models: Dict[st
             raise ValueError(f"--color-by: {error}") if "color_by" in str(error) else error
     write_csv(table, CODE_COLUMNS, rows)
     print(f"wrote {png} and {table} ({label}, {used})")
+    distances = code_distances(codes)
+    print(
+        f"||g(tau^exp) - f(T)||^2 {distances['decoder_error']:.3f}, ||g(empty) - mean f||^2 "
+        f"{distances['empty_to_mean_f']:.3f}, against ||f(T) - mean f||^2 {distances['f_spread']:.3f}"
+    )
     return used
 
 

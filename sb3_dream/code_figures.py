@@ -112,6 +112,21 @@ def _prefix_codes(model: Any, trajectories: Sequence[Tuple[np.ndarray, np.ndarra
     return [g[k, : n + 1] for k, n in enumerate(lengths)]
 
 
+def code_distances(codes: DreamCodes) -> Dict[str, float]:
+    """Where the decoder's codes sit, in the codes' own space (no embedding): the mean squared
+    distance of g(tau^exp) from its problem's f(T) (``decoder_error``), of g of the empty trajectory
+    from the mean of f over the problems (``empty_to_mean_f``: the decoder's guess before it has seen
+    anything, best at that mean when the problems are equally likely), and of f(T) from that mean
+    (``f_spread``, the scale to read both against)."""
+    mean_f = codes.f.mean(axis=0)
+    empty = np.stack([prefix[0] for prefix in codes.prefixes])
+    return {
+        "decoder_error": float(((codes.g - codes.f[codes.trial_problem_ids]) ** 2).sum(axis=1).mean()),
+        "empty_to_mean_f": float(((empty - mean_f) ** 2).sum(axis=1).mean()),
+        "f_spread": float(((codes.f - mean_f) ** 2).sum(axis=1).mean()),
+    }
+
+
 def pca_2d(points: np.ndarray) -> np.ndarray:
     """``points`` [n, z] projected on their two principal axes (numpy; zeros where z < 2)."""
     centred = np.asarray(points, dtype=np.float64) - np.mean(points, axis=0)

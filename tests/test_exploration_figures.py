@@ -161,6 +161,10 @@ def test_dream_codes_of_the_shipped_map_model_land_on_their_problems():
     error = ((codes.g - codes.f[codes.trial_problem_ids]) ** 2).sum(axis=1)
     spread = ((codes.f[:, None] - codes.f[None]) ** 2).sum(axis=2).mean()
     assert error.max() < 0.05 * spread
+    distances = code_figures.code_distances(codes)
+    assert distances["decoder_error"] == pytest.approx(error.mean()) and distances["decoder_error"] < 0.05
+    # before it has seen anything the decoder guesses the mean of the problems' codes
+    assert distances["empty_to_mean_f"] < 0.05 * distances["f_spread"]
     values, name = code_figures.color_values(codes, 0)
     assert values.tolist() == list(range(24)) and name.startswith("colored permutation")
     with pytest.raises(ValueError, match="color_by=5 is not valid"):
