@@ -586,3 +586,126 @@ def _state(pid: int) -> str:
             return f.read().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "Z"
+
+
+def test_rewarded_exploration_variants_are_specs_of_their_algorithm():
+    from sb3_dream.experiments import ALGORITHMS, register_rewarded_exploration_variant, rewarded_exploration_variant
+
+    e_rl2 = ALGORITHMS["e_rl2dqn"]  # E-RL²: the paper's dashed RL² line
+    rl2 = ALGORITHMS["rl2dqn"]
+    assert e_rl2.env_kwargs == {"reward_free_exploration": False} and e_rl2.rewarded_exploration
+    assert (e_rl2.load_class, e_rl2.presets, e_rl2.overrides, e_rl2.variant_of) == (
+        rl2.load_class, rl2.presets, rl2.overrides, "rl2dqn"
+    )  # fmt: skip
+    assert not rl2.rewarded_exploration and not rl2.env_kwargs
+    variant = rewarded_exploration_variant(ALGORITHMS["dream"])  # any algorithm has one
+    assert variant.name == "e_dream" and variant.fixed_kwargs == {"bottleneck": True} and "e_dream" not in ALGORITHMS
+    with pytest.raises(ValueError, match="already explores with rewards"):
+        rewarded_exploration_variant(e_rl2)
+    with pytest.raises(ValueError, match="already registered"):
+        register_rewarded_exploration_variant("rl2dqn")
+    with pytest.raises(ValueError, match="algo='nope' is not valid"):
+        register_rewarded_exploration_variant("nope")
+    # A run's envs get the arguments its name fixes, the env entry (its folder, its tag) does not.
+    run = Run("e_rl2dqn", EnvSpec.parse("MetaBus-v0:variant=map:n_exec_episodes=2"), 0)
+    assert run.env_kwargs == {"variant": "map", "n_exec_episodes": 2, "reward_free_exploration": False}
+    assert run.eval_kwargs == {"variant": "map", "reward_free_exploration": False}
+    assert run.env.tag == "MetaBus-v0_n_exec_episodes-2_variant-map"
+    assert Run("rl2dqn", run.env, 0).env_kwargs == run.env.env_kwargs
+    assert plan_runs(["e_rl2dqn"], [EnvSpec.parse("MetaBus-v0:reward_free_exploration=False")], [0])
+    with pytest.raises(ValueError, match="e_rl2dqn runs with reward_free_exploration=False"):
+        plan_runs(["e_rl2dqn"], [EnvSpec.parse("MetaBus-v0:reward_free_exploration=True")], [0])
+    # The overrides field is shared: --rl2dqn-kwargs sets both.
+    config = RunConfig(rl2dqn_kwargs=(("buffer_size", 50),))
+    assert config.overrides("e_rl2dqn") == config.overrides("rl2dqn") == {"buffer_size": 50}
+
+
+def test_e_rl2dqn_trains_and_evaluates_with_rewarded_exploration(tmp_path, monkeypatch):
+    from dream_envs.bandit import MetaBanditEnv
+
+    seen = []  # (algo, split, reward_free_exploration, exploration instruction) of every exploration step
+    step = MetaBanditEnv.step
+
+    def recording_step(self, action):
+        if self.phase == 0:
+            seen.append((current[0], self.split, self.reward_free_exploration, int(self._observation()["instruction"][0])))
+        return step(self, action)
+
+    monkeypatch.setattr(MetaBanditEnv, "step", recording_step)
+    config = RunConfig(
+        steps=40, eval_freq=40, eval_trials=4, rl2dqn_kwargs=(("buffer_size", 50), ("learning_starts", 10))
+    )
+    out = tmp_path / "results"
+    current = [None]
+    for algo in ("e_rl2dqn", "rl2dqn"):
+        current[0] = algo
+        run = Run(algo, EnvSpec.parse("MetaBandit-v0"), 0)
+        record = experiments.run_one(run, config, out)
+        assert record["status"] == "done" and 0 <= record["final"]["test"]["mean"] <= 1  # execution returns
+    rewarded = {(split, free, instruction) for algo, split, free, instruction in seen if algo == "e_rl2dqn"}
+    # Training (train split) and the held-out evaluations (test split) alike: an instruction and
+    # rewards in the exploration episode; the plain RL² run explores reward-free.
+    assert rewarded == {("train", False, 1), ("test", False, 1)}
+    plain = {(split, free, instruction) for algo, split, free, instruction in seen if algo == "rl2dqn"}
+    assert plain == {("train", True, 0), ("test", True, 0)}
+    folder = out / "MetaBandit-v0"  # both in one env folder, one panel of the figure
+    info = json.loads((folder / "e_rl2dqn_seed0.json").read_text())
+    assert info["algo_env_kwargs"] == {"reward_free_exploration": False} and info["env_kwargs"] == {}
+    assert "algo_env_kwargs" not in json.loads((folder / "rl2dqn_seed0.json").read_text())
+    assert [r.algo for r in experiments.finished_runs(out)] == ["rl2dqn", "e_rl2dqn"]
+    rows = experiments.summarize(experiments.finished_runs(out), config, out)
+    pearl = {row["algo"]: row["pearl_ub"] for row in rows}
+    assert pearl == {"rl2dqn": pytest.approx(15 / 64), "e_rl2dqn": pytest.approx(22 / 64)}  # |A| = 8, H = 1
+
+
+def test_figures_draw_pearl_ub_per_split_and_dash_rewarded_exploration(tmp_path, monkeypatch):
+    plt = pytest.importorskip("matplotlib.pyplot")
+    from dream_envs import pearl_ub
+
+    out = tmp_path / "results"
+    config = RunConfig(eval_splits=("test", "train"))
+    env = EnvSpec.parse("MetaBus-v0")  # the distracting bus: its train and test splits differ
+    runs = [Run(algo, env, 0) for algo in ("dream", "rl2dqn", "e_rl2dqn")]
+    for run in runs:
+        for split in config.eval_splits:
+            path = run.curve_path(out, split)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "w", newline="") as f:
+                writer = csv.writer(f)
+                writer.writerow(CURVE_COLUMNS)
+                for k, steps in enumerate((0, 100)):
+                    writer.writerow({"env_steps": steps, "wall_clock_s": k, "mean": 0.1 * k, "ci": 0.0,
+                                     "exploration_length": 1}.get(c, 0) for c in CURVE_COLUMNS)  # fmt: skip
+    figures = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
+    experiments.plot_curves(runs, config, out, oracles={(env.tag, "test"): 0.8})
+    (fig,) = figures
+    test_ax, train_ax = fig.axes[:2]
+    import gymnasium as gym
+
+    bus = gym.make("MetaBus-v0")
+    for ax, split in ((test_ax, "test"), (train_ax, "train")):
+        lines = {line.get_label(): line for line in ax.get_lines()}
+        assert lines["PEARL-UB"].get_ydata()[0] == pytest.approx(pearl_ub(bus, split))
+        assert lines["PEARL-UB"].get_linestyle() == ":"
+        # The distracting bus's rewarded value is the same: no second line.
+        assert "PEARL-UB (rewarded exploration)" not in lines
+        e_line, plain = lines["e_rl2dqn (1 seed)"], lines["rl2dqn (1 seed)"]
+        assert e_line.get_linestyle() == "--" and plain.get_linestyle() == "-"
+        assert e_line.get_color() == plain.get_color() != lines["dream (1 seed)"].get_color()
+    assert pearl_ub(bus, "train") != pytest.approx(pearl_ub(bus, "test"), abs=1e-3)
+    assert "optimal" in {line.get_label() for line in test_ax.get_lines()}
+
+    # MetaCook: the rewarded value differs, so a panel with an e_ run shows both.
+    cook = EnvSpec.parse("MetaCook-v0")
+    cook_runs = [Run("e_rl2dqn", cook, 0)]
+    path = cook_runs[0].curve_path(out, "test")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text((out / env.tag / "rl2dqn_seed0.csv").read_text())
+    experiments.plot_curves(cook_runs, RunConfig(), out)
+    labels = {line.get_label(): line.get_ydata()[0] for line in figures[-1].axes[0].get_lines()}
+    made = gym.make("MetaCook-v0")
+    assert labels["PEARL-UB"] == pytest.approx(pearl_ub(made, "test", rewarded_exploration=False))
+    assert labels["PEARL-UB (rewarded exploration)"] == pytest.approx(pearl_ub(made, "test", rewarded_exploration=True))
+    # Without PEARL-UB support (CartPole is no trial env) there is no line, and nothing fails.
+    assert experiments.pearl_ub_return(EnvSpec.parse("CartPole-v1"), "test") is None

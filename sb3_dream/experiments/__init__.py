@@ -22,6 +22,8 @@ from sb3_dream.experiments.algorithms import (
     load_with_overrides,
     make_model,
     register_algorithm,
+    register_rewarded_exploration_variant,
+    rewarded_exploration_variant,
 )
 from sb3_dream.experiments.backends import Backend, LocalPool
 from sb3_dream.experiments.checkpoints import Checkpointer, init_checkpoint
@@ -34,6 +36,7 @@ from sb3_dream.experiments.report import (
     finished_runs,
     load_curve,
     oracle_return,
+    pearl_ub_return,
     plot_curves,
     summarize,
     write_summary,
@@ -67,9 +70,12 @@ __all__ = [
     "make_model",
     "oracle_return",
     "parse_kwargs",
+    "pearl_ub_return",
     "plan_runs",
     "plot_curves",
     "register_algorithm",
+    "register_rewarded_exploration_variant",
+    "rewarded_exploration_variant",
     "run_experiments",
     "run_one",
     "runner_lock",

@@ -10,6 +10,16 @@ runner calls around training. Adding an algorithm to the runner is registering i
 where ``overrides`` names the :class:`RunConfig` field (and ``--my-algo-kwargs`` flag) that holds
 the command's constructor overrides. Parallel runs start fresh interpreters, so a spec registered
 by a script must be registered when the script is imported, not only under ``__main__``.
+
+A name can also fix env arguments (:attr:`AlgorithmSpec.env_kwargs`), for its training and
+held-out evaluation envs alike. The paper's dashed lines (Figures 5 and 6: RL², IMPORT and VARIBAD
+"with an instruction and rewards in the exploration episode") are such variants: each is its
+algorithm trained and evaluated with ``reward_free_exploration=False``, named ``e_<name>``
+(``e_rl2dqn`` is E-RL²), sharing the algorithm's class, presets and overrides, and drawn dashed in
+its algorithm's colour. Registering one is one line, once its algorithm is registered::
+
+    register_rewarded_exploration_variant("import_dqn")  # e_import_dqn
+    register_rewarded_exploration_variant("varibad")  # e_varibad
 """
 
 from __future__ import annotations
@@ -45,6 +55,11 @@ class AlgorithmSpec:
     :param prepare: called before each training session (fresh or going on from a checkpoint), to
         set how the model runs (not what it computes) for the overrides and the runs sharing the cores
     :param report: called on the final model; its entries are added to the run's JSON record
+    :param env_kwargs: env constructor arguments that the name fixes, for the training and the
+        evaluation envs (e.g. ``reward_free_exploration=False``); an env entry may not set them to
+        other values
+    :param variant_of: the registered algorithm this one is a variant of (figures draw both in one
+        colour), or ``""``
     """
 
     name: str
@@ -54,6 +69,13 @@ class AlgorithmSpec:
     fixed_kwargs: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     prepare: Optional[PrepareHook] = None
     report: Optional[ReportHook] = None
+    env_kwargs: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    variant_of: str = ""
+
+    @property
+    def rewarded_exploration(self) -> bool:
+        """Whether the name gives the exploration episode an instruction and rewards."""
+        return self.env_kwargs.get("reward_free_exploration", True) is False
 
 
 ALGORITHMS: Dict[str, AlgorithmSpec] = {}
@@ -65,6 +87,35 @@ def register_algorithm(spec: AlgorithmSpec) -> AlgorithmSpec:
         raise ValueError(f"an algorithm named {spec.name!r} is already registered")
     ALGORITHMS[spec.name] = spec
     return spec
+
+
+REWARDED_EXPLORATION_PREFIX = "e_"
+
+
+def rewarded_exploration_variant(spec: AlgorithmSpec) -> AlgorithmSpec:
+    """The paper's dashed-line variant of ``spec`` (E-RL² for RL²): named ``e_<name>``, trained and
+    evaluated with an instruction and rewards in the exploration episode
+    (``reward_free_exploration=False``); class, presets, overrides and hooks are ``spec``'s."""
+    if spec.rewarded_exploration:
+        raise ValueError(f"{spec.name} already explores with rewards")
+    return dataclasses.replace(
+        spec,
+        name=REWARDED_EXPLORATION_PREFIX + spec.name,
+        env_kwargs={**spec.env_kwargs, "reward_free_exploration": False},
+        variant_of=spec.name,
+    )
+
+
+def register_rewarded_exploration_variant(algo: str) -> AlgorithmSpec:
+    """Register (and return) :func:`rewarded_exploration_variant` of the registered ``algo``."""
+    return register_algorithm(rewarded_exploration_variant(algorithm_spec(algo)))
+
+
+def algorithm_env_kwargs(algo: str) -> Dict[str, Any]:
+    """The env arguments that the name ``algo`` fixes (:attr:`AlgorithmSpec.env_kwargs`); none for
+    a name not registered in this process (e.g. a finished run's record read by a report)."""
+    spec = ALGORITHMS.get(algo)
+    return dict(spec.env_kwargs) if spec is not None else {}
 
 
 def algorithm_spec(algo: str) -> AlgorithmSpec:
@@ -162,7 +213,7 @@ def _diagnose_dream(model: Any, run: "Run", config: "RunConfig", tag: str) -> Di
         model,
         run.env.env_id,
         n_trials=config.eval_trials,
-        env_kwargs=run.env.eval_kwargs,
+        env_kwargs=run.eval_kwargs,
         exhaustive=config.eval_exhaustive,
     )
     # What its explorer is paid for, step by step (Equation 5), on the same trials.
@@ -203,3 +254,4 @@ def _rl2dqn_class() -> type:
 register_algorithm(_dream_spec("dream", bottleneck=True))
 register_algorithm(_dream_spec("dream_no_bottleneck", bottleneck=False))  # the paper's ablation
 register_algorithm(AlgorithmSpec("rl2dqn", _rl2dqn_class, RL2DQN_PRESETS, "rl2dqn_kwargs"))  # the RL² baseline
+register_rewarded_exploration_variant("rl2dqn")  # e_rl2dqn: E-RL², the paper's dashed RL² line

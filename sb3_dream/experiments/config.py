@@ -10,7 +10,13 @@ from typing import Any, Dict, Sequence, Tuple
 from dream_envs import all_splits
 from dream_envs.checks import check_choice
 from sb3_dream.evaluation import BEST_TIES
-from sb3_dream.experiments.algorithms import ALGORITHMS, algorithm_spec, override_fields, preset_names
+from sb3_dream.experiments.algorithms import (
+    ALGORITHMS,
+    algorithm_env_kwargs,
+    algorithm_spec,
+    override_fields,
+    preset_names,
+)
 
 
 def _parse_value(text: str) -> Any:
@@ -171,6 +177,29 @@ class Run:
     @property
     def name(self) -> str:
         return f"{self.algo}_seed{self.seed}"
+
+    @property
+    def env_kwargs(self) -> Dict[str, Any]:
+        """Arguments of the run's training env: the env entry's, and those the algorithm's name
+        fixes (:attr:`~sb3_dream.experiments.algorithms.AlgorithmSpec.env_kwargs`, e.g. E-RL²'s
+        ``reward_free_exploration=False``)."""
+        return {**self.env.env_kwargs, **algorithm_env_kwargs(self.algo)}
+
+    @property
+    def eval_kwargs(self) -> Dict[str, Any]:
+        """Arguments of the run's evaluation envs (``split`` and ``n_exec_episodes`` are set
+        separately): the env entry's and those the algorithm's name fixes."""
+        return {**self.env.eval_kwargs, **algorithm_env_kwargs(self.algo)}
+
+    def check_env_kwargs(self) -> None:
+        """Raise a ``ValueError`` if the env entry sets an argument that the algorithm's name fixes
+        to another value."""
+        for key, value in algorithm_env_kwargs(self.algo).items():
+            if key in self.env.env_kwargs and self.env.env_kwargs[key] != value:
+                raise ValueError(
+                    f"{self.env.label} sets {key}={self.env.env_kwargs[key]!r}, but {self.algo} runs with "
+                    f"{key}={value!r}: drop it from the env entry, or choose another algorithm"
+                )
 
     def folder(self, out: pathlib.Path) -> pathlib.Path:
         return out / self.env.tag

@@ -1,9 +1,10 @@
-"""Reports of an experiment: its finished runs, the oracle's return, the summary table, the figure
-(each file replaced atomically)."""
+"""Reports of an experiment: its finished runs, the oracle's return, PEARL-UB, the summary table,
+the figure (each file replaced atomically)."""
 
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import pathlib
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -13,7 +14,7 @@ import numpy as np
 from dream_envs import all_splits
 from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import CURVE_COLUMNS
-from sb3_dream.experiments.algorithms import ALGORITHMS
+from sb3_dream.experiments.algorithms import ALGORITHMS, REWARDED_EXPLORATION_PREFIX
 from sb3_dream.experiments.config import EnvSpec, Run, RunConfig
 
 
@@ -85,11 +86,58 @@ def oracle_return(
     return result.mean
 
 
+def pearl_ub_return(env: EnvSpec, split: str, rewarded_exploration: Optional[bool] = None) -> Optional[float]:
+    """PEARL-UB (:func:`dream_envs.pearl_ub`) of ``env`` on ``split``, in the env entry's
+    exploration setting or (``rewarded_exploration`` True or False) the one given; None for an env
+    it does not know or cannot make here (SignNav3D without OpenGL). Exact and quick to compute;
+    kept for the process."""
+    return _pearl_ub_cached(env, split, rewarded_exploration)
+
+
+@functools.lru_cache(maxsize=None)
+def _pearl_ub_cached(env: EnvSpec, split: str, rewarded_exploration: Optional[bool]) -> Optional[float]:
+    import gymnasium as gym
+
+    from dream_envs.pearl_ub import pearl_ub, supports
+
+    try:
+        made = gym.make(env.env_id, split=split, **env.eval_kwargs)
+    except Exception:  # noqa: BLE001 - an env that cannot be made here has no line, the report goes on
+        return None
+    try:
+        return pearl_ub(made, split, rewarded_exploration) if supports(made) else None
+    except (TypeError, ValueError):  # e.g. a horizon too short for the derivation
+        return None
+    finally:
+        made.close()
+
+
+def _rewarded(algo: str) -> bool:
+    """Whether ``algo`` explores with an instruction and rewards (an ``e_`` variant); judged from its
+    registered spec, else from its name (a finished run's record of a variant not registered here)."""
+    spec = ALGORITHMS.get(algo)
+    return spec.rewarded_exploration if spec is not None else algo.startswith(REWARDED_EXPLORATION_PREFIX)
+
+
+def _base_algo(algo: str) -> str:
+    """The algorithm ``algo`` is a variant of (itself if none): both are drawn in one colour."""
+    spec = ALGORITHMS.get(algo)
+    if spec is not None:
+        return spec.variant_of or algo
+    return algo[len(REWARDED_EXPLORATION_PREFIX):] if algo.startswith(REWARDED_EXPLORATION_PREFIX) else algo
+
+
 def summarize(
-    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+    runs: Sequence[Run],
+    config: RunConfig,
+    out: pathlib.Path,
+    oracles: Optional[Dict[Tuple[str, str], float]] = None,
+    pearl_ub: bool = True,
 ) -> List[Dict[str, Any]]:
     """One row per (env, algo, split): the final return's mean and std over the finished seeds
-    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock.
+    (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock,
+    and (``pearl_ub``, where :func:`dream_envs.pearl_ub` knows the env) PEARL-UB in the
+    algorithm's exploration setting (rewarded for the ``e_`` variants).
 
     ``last_tenth_mean`` averages each seed's evaluations over the last tenth of its env steps, then
     the seeds: single greedy evaluations of a value-based agent swing, and one of them can
@@ -114,6 +162,10 @@ def summarize(
                 )
             if oracles and (env.tag, split) in oracles:
                 row["oracle_return"] = oracles[(env.tag, split)]
+            if pearl_ub:
+                value = pearl_ub_return(env, split, True if _rewarded(algo) else None)
+                if value is not None:
+                    row["pearl_ub"] = value  # in the algorithm's exploration setting
             rows.append(row)
     return rows
 
@@ -129,6 +181,7 @@ SUMMARY_COLUMNS = (
     "env_steps",
     "wall_clock_s",
     "oracle_return",
+    "pearl_ub",
 )
 
 
@@ -140,17 +193,18 @@ def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
         for row in rows:
             writer.writerow({k: row.get(k, "") for k in SUMMARY_COLUMNS})
     lines = [
-        "| env | algo | split | seeds | final return (mean ± std) | mean over the last tenth | optimal | env steps "
-        "| wall-clock |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| env | algo | split | seeds | final return (mean ± std) | mean over the last tenth | optimal | PEARL-UB "
+        "| env steps | wall-clock |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         ret = f"{row['final_return_mean']:.3f} ± {row['final_return_std']:.3f}" if row["seeds"] else "-"
         last_tenth = f"{row['last_tenth_mean']:.3f}" if row["seeds"] else "-"
         optimal = f"{row['oracle_return']:.3f}" if "oracle_return" in row else "-"
+        pearl = f"{row['pearl_ub']:.3f}" if "pearl_ub" in row else "-"
         steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
         clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
-        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, steps, clock]
+        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, pearl, steps, clock]
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
     with atomic_target(out / "summary.md", "md") as tmp:
@@ -167,10 +221,18 @@ def _format_seconds(seconds: float) -> str:
 
 
 def plot_curves(
-    runs: Sequence[Run], config: RunConfig, out: pathlib.Path, oracles: Optional[Dict[Tuple[str, str], float]] = None
+    runs: Sequence[Run],
+    config: RunConfig,
+    out: pathlib.Path,
+    oracles: Optional[Dict[Tuple[str, str], float]] = None,
+    pearl_ub: bool = True,
 ) -> pathlib.Path:
     """``curves.png``: execution return vs env steps, mean +- std over seeds, one panel per env and
-    split, with the optimal return dashed (the paper's Figures 5 and 6)."""
+    split (the paper's Figures 5 and 6): the optimal return as a thin black line, and (``pearl_ub``,
+    where :func:`dream_envs.pearl_ub` knows the env) PEARL-UB of the panel's split as a gray dotted
+    line. As in the paper, the rewarded-exploration variants (``e_rl2dqn``: E-RL²) are dashed, in
+    their algorithm's colour; a panel with one also gets PEARL-UB with rewarded exploration,
+    dash-dotted, where it differs."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -178,12 +240,13 @@ def plot_curves(
 
     envs = list(dict.fromkeys(run.env for run in runs))
     algos = list(dict.fromkeys(run.algo for run in runs))
+    bases = list(dict.fromkeys(_base_algo(algo) for algo in algos))
     panels = [(env, split) for env in envs for split in config.eval_splits]
     n_cols = min(len(panels), 3)
     n_rows = -(-len(panels) // n_cols)
     fig, axes = plt.subplots(n_rows, n_cols, figsize=(5 * n_cols, 3.6 * n_rows), squeeze=False)
     for ax, (env, split) in zip(axes.flat, panels):
-        for k, algo in enumerate(algos):
+        for algo in algos:
             paths = [r.curve_path(out, split) for r in runs if r.env == env and r.algo == algo]
             curves = [load_curve(p) for p in paths if p.exists()]
             if not curves:
@@ -192,11 +255,19 @@ def plot_curves(
             steps = curves[0]["env_steps"][:n]
             values = np.stack([c["mean"][:n] for c in curves])
             mean, std = values.mean(axis=0), values.std(axis=0)
-            color = f"C{k}"
-            ax.plot(steps, mean, color=color, label=f"{algo} ({len(curves)} seed{'s' if len(curves) > 1 else ''})")
+            color = f"C{bases.index(_base_algo(algo))}"
+            ax.plot(
+                steps,
+                mean,
+                color=color,
+                ls="--" if _rewarded(algo) else "-",
+                label=f"{algo} ({len(curves)} seed{'s' if len(curves) > 1 else ''})",
+            )
             ax.fill_between(steps, mean - std, mean + std, color=color, alpha=0.2, linewidth=0)
         if oracles and (env.tag, split) in oracles:
-            ax.axhline(oracles[(env.tag, split)], color="k", ls="--", lw=1, label="optimal")
+            ax.axhline(oracles[(env.tag, split)], color="k", ls="-", lw=0.8, label="optimal")
+        if pearl_ub:
+            _draw_pearl_ub(ax, env, split, any(_rewarded(r.algo) for r in runs if r.env == env))
         ax.set_title(f"{env.label}" + ("" if split == "test" else f", {split} split"))
         ax.set_xlabel("env steps")
         ax.set_ylabel("execution return" + (" (held-out)" if split == "test" else ""))
@@ -213,3 +284,15 @@ def plot_curves(
         fig.savefig(tmp, dpi=120)
     plt.close(fig)
     return path
+
+
+def _draw_pearl_ub(ax: Any, env: EnvSpec, split: str, rewarded_runs: bool) -> None:
+    """PEARL-UB of ``env`` on ``split`` as horizontal lines: reward-free exploration (dotted), and
+    with ``rewarded_runs`` the rewarded-exploration value (dash-dotted) where it differs."""
+    value = pearl_ub_return(env, split)
+    if value is not None:
+        ax.axhline(value, color="gray", ls=":", lw=1.2, label="PEARL-UB")
+    if rewarded_runs:
+        rewarded = pearl_ub_return(env, split, rewarded_exploration=True)
+        if rewarded is not None and (value is None or not np.isclose(rewarded, value)):
+            ax.axhline(rewarded, color="gray", ls="-.", lw=1.2, label="PEARL-UB (rewarded exploration)")

@@ -26,7 +26,10 @@ def plan_runs(algos: Sequence[str], envs: Sequence[EnvSpec], seeds: Sequence[int
         raise ValueError("envs must name at least one env")
     if not seeds or any(isinstance(s, bool) or not isinstance(s, (int, np.integer)) or s < 0 for s in seeds):
         raise ValueError(f"seeds must be a non-empty list of integers >= 0, got {list(seeds)!r}")
-    return [Run(algo, env, int(seed)) for env in envs for algo in dict.fromkeys(algos) for seed in dict.fromkeys(seeds)]
+    runs = [Run(algo, env, int(seed)) for env in envs for algo in dict.fromkeys(algos) for seed in dict.fromkeys(seeds)]
+    for run in runs:
+        run.check_env_kwargs()
+    return runs
 
 
 def check_eval_splits(runs: Sequence[Run], config: RunConfig) -> None:

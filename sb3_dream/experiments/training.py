@@ -11,7 +11,13 @@ from typing import Any, Dict
 
 from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import format_mean_ci
-from sb3_dream.experiments.algorithms import algorithm_class, algorithm_spec, load_with_overrides, make_model
+from sb3_dream.experiments.algorithms import (
+    algorithm_class,
+    algorithm_env_kwargs,
+    algorithm_spec,
+    load_with_overrides,
+    make_model,
+)
 from sb3_dream.experiments.checkpoints import (
     Checkpointer,
     init_checkpoint,
@@ -47,7 +53,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         resume_folder, resume = init_checkpoint(run, config)
         init_from = {"out": config.init_from, "env_steps": int(resume["env_steps"])}
     checkpointer.init_from = init_from if init_from is not None else (resume or {}).get("init_from")
-    env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env.env_kwargs)
+    env = make_vec_env(run.env.env_id, n_envs=config.n_envs, seed=run.seed, env_kwargs=run.env_kwargs)
     if resume is None:
         model, seconds_before = make_model(run.algo, env, config, run.seed), 0.0
     else:
@@ -123,6 +129,9 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         "init_from": checkpointer.init_from,
         "final": finals,
     }
+    fixed = algorithm_env_kwargs(run.algo)
+    if fixed:
+        info["algo_env_kwargs"] = fixed  # the env arguments the algorithm's name set (E-RL²'s)
     if best is not None and best.best_env_steps is not None:
         info["best"] = _meta_test_best(run, config, best, tag)
     if spec.report is not None:
@@ -163,7 +172,7 @@ def _meta_test_kwargs(run: Run, config: RunConfig) -> Dict[str, Any]:
         "exhaustive": config.eval_exhaustive,
         "n_exec_episodes": run.env.n_exec_episodes,
         "seed": 0,
-        "env_kwargs": run.env.eval_kwargs,
+        "env_kwargs": run.eval_kwargs,
     }
 
 
