@@ -117,14 +117,18 @@ class _PathRecorder(TrialRecorder):
 
     def trial_row(self, result: Dict[str, Any]) -> Tuple[Any, ...]:
         if not self.closed:  # a trial without an execution episode never shows the last state
-            raise RuntimeError("the exploration episode's last state was not seen: the trial needs an execution episode")
+            raise RuntimeError(
+                "the exploration episode's last state was not seen: the trial needs an execution episode"
+            )
         problem_id = int(result["problem_id"])
         cells = [(int(s[0]), int(s[1])) for s in self.states]
         events = _events(self.env, problem_id, self.states, self.actions)
         return (ExplorationPath(problem_id, cells, list(self.actions), events),)
 
 
-def _events(env: TrialEnv, problem_id: int, states: Sequence[np.ndarray], actions: Sequence[int]) -> List[ExplorationEvent]:
+def _events(
+    env: TrialEnv, problem_id: int, states: Sequence[np.ndarray], actions: Sequence[int]
+) -> List[ExplorationEvent]:
     """What each step of an exploration found, in problem ``problem_id``."""
     events: List[ExplorationEvent] = []
     if isinstance(env, MetaBusEnv):
@@ -222,7 +226,9 @@ def path_rows(env: gym.Env, panels: Mapping[str, Sequence[ExplorationPath]]) -> 
     return rows
 
 
-def _cell_box(ax: Any, cell: Cell, face: Any, edge: Any = "none", lw: float = 0.0, inset: float = 0.04, **kw: Any) -> None:
+def _cell_box(
+    ax: Any, cell: Cell, face: Any, edge: Any = "none", lw: float = 0.0, inset: float = 0.04, **kw: Any
+) -> None:
     from matplotlib.patches import Rectangle
 
     x, y = cell

@@ -40,7 +40,14 @@ import gymnasium as gym
 
 import dream_envs
 from dream_envs import make_oracle
-from dream_envs.figures import FAMILIES, PATH_COLUMNS, exploration_figure, exploration_paths, held_out_problems, path_rows
+from dream_envs.figures import (
+    FAMILIES,
+    PATH_COLUMNS,
+    exploration_figure,
+    exploration_paths,
+    held_out_problems,
+    path_rows,
+)
 from sb3_dream.code_figures import CODE_COLUMNS, EMBEDDINGS, code_distances, code_figure, dream_codes
 from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import as_trial_agent
@@ -86,17 +93,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", action="append", default=[], metavar="[LABEL=]PATH",
                         help="a saved model (repeatable; one panel each, in the order given)")  # fmt: skip
     parser.add_argument("--env", default="MetaBus-v0", help=f"one of {', '.join(FAMILIES)}")
-    parser.add_argument("--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map")
+    parser.add_argument(
+        "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map"
+    )
     parser.add_argument("--split", default="test", choices=dream_envs.all_splits(), help="test = held-out problems")
-    parser.add_argument("--trials", type=int, default=4, help="trials (problems) drawn per panel; with --codes, g's trials")
+    parser.add_argument(
+        "--trials", type=int, default=4, help="trials (problems) drawn per panel; with --codes, g's trials"
+    )
     parser.add_argument("--seed", type=int, default=0, help="draws the problems; trial k is seeded SEED + k")
     parser.add_argument("--oracle", action="store_true", help="add the env's scripted optimal explorer as a panel")
     parser.add_argument("--codes", action="store_true", help="draw the first DREAM model's codes (Figure 9) instead")
-    parser.add_argument("--embedding", default="auto", choices=EMBEDDINGS, help="auto: t-SNE with scikit-learn, else PCA")
+    parser.add_argument(
+        "--embedding", default="auto", choices=EMBEDDINGS, help="auto: t-SNE with scikit-learn, else PCA"
+    )
     parser.add_argument("--color-by", default="0", metavar="FEATURE|problem",
                         help="--codes: colour by this problem feature (index) or by the problem ID")  # fmt: skip
-    parser.add_argument("--prefix-paths", type=int, default=3, help="--codes: trials whose g(tau_:t) is drawn step by step")
-    parser.add_argument("--out", required=True, help="path prefix: writes <out>_explorations.png/.csv or <out>_codes.png/.csv")
+    parser.add_argument(
+        "--prefix-paths", type=int, default=3, help="--codes: trials whose g(tau_:t) is drawn step by step"
+    )
+    parser.add_argument(
+        "--out", required=True, help="path prefix: writes <out>_explorations.png/.csv or <out>_codes.png/.csv"
+    )
     return parser
 
 
@@ -114,7 +131,9 @@ def check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Non
         parser.error("--model is required (with --codes, a DREAM model; without, --oracle alone also draws)")
     out = pathlib.Path(args.out)
     if out.name in ("", ".", "..") or out.is_dir():
-        parser.error(f"--out must be a path prefix such as figures/map (files <out>_explorations.png ...), got {args.out!r}")
+        parser.error(
+            f"--out must be a path prefix such as figures/map (files <out>_explorations.png ...), got {args.out!r}"
+        )
 
 
 def make_env(parser: argparse.ArgumentParser, args: argparse.Namespace, kwargs: Dict[str, Any]) -> gym.Env:
@@ -137,7 +156,8 @@ def check_model_env(parser: argparse.ArgumentParser, path: str, model: Any, env:
     space = getattr(model, "observation_space", None)
     if space is not None and space != env.observation_space:
         parser.error(
-            f"--model {path}: {what} does not match the model: the model observes {space}, the env {env.observation_space}"
+            f"--model {path}: {what} does not match the model: the model observes {space}, "
+            f"the env {env.observation_space}"
         )
 
 

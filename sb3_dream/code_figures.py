@@ -69,7 +69,9 @@ def dream_codes(
     from sb3_dream.evaluation import make_envs
 
     if not isinstance(model, DREAM):
-        raise TypeError(f"model must be a DREAM model (the codes are its encoder's and decoder's), got {type(model).__name__}")
+        raise TypeError(
+            f"model must be a DREAM model (the codes are its encoder's and decoder's), got {type(model).__name__}"
+        )
     n_trials = check_positive_int("n_trials", n_trials)
     envs, made = make_envs(env, split, 1, env_kwargs, min(check_positive_int("n_envs", n_envs), n_trials))
     try:
@@ -164,7 +166,9 @@ def color_values(codes: DreamCodes, color_by: Union[str, int]) -> Tuple[np.ndarr
         return codes.problem_ids.copy(), "problem ID"
     d = codes.features.shape[1]
     if isinstance(color_by, bool) or not isinstance(color_by, (int, np.integer)) or not 0 <= color_by < d:
-        raise ValueError(f"color_by={color_by!r} is not valid; accepted values: 'problem' or a feature index 0 .. {d - 1}")
+        raise ValueError(
+            f"color_by={color_by!r} is not valid; accepted values: 'problem' or a feature index 0 .. {d - 1}"
+        )
     names = FEATURE_NAMES.get(codes.family, ())
     name = names[color_by] if color_by < len(names) else f"problem feature {color_by}"
     return codes.features[:, color_by].copy(), name

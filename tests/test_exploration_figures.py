@@ -15,7 +15,7 @@ import pytest
 
 import dream_envs  # noqa: F401  (registers the envs)
 from dream_envs import ScriptedAgent
-from dream_envs.bus import DOWN, END_EPISODE, GRAY_STOPS, RIDE, RIGHT, UP
+from dream_envs.bus import END_EPISODE, GRAY_STOPS, RIDE, RIGHT, UP
 from dream_envs.figures import (
     PATH_COLUMNS,
     ExplorationEvent,
@@ -218,7 +218,7 @@ def test_the_script_draws_the_shipped_models(tmp_path, script_module, capsys):
         (["--env-kwargs", "variant"], "--env-kwargs entries must look like key=value"),
         (["--env-kwargs", "variant=tram"], "--env-kwargs variant=tram for MetaBus-v0: variant='tram'"),
         (["--model", f"A={DREAM_MAP}", "--model", f"A={RL2DQN_MAP}"], "--model: the label 'A' is given twice"),
-        (["--env-kwargs", "variant=distracting"], f"--model {DREAM_MAP}: the env (--env, --env-kwargs) does not match the model"),
+        (["--env-kwargs", "variant=distracting"], f"--model {DREAM_MAP}: the env (--env, --env-kwargs) does not match"),
         (["--codes", "--model", str(RL2DQN_MAP)], "--codes needs a DREAM --model"),
         (["--codes", "--color-by", "3"], "--color-by: color_by=3 is not valid"),
         ([], "--model is required"),
