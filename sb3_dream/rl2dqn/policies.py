@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, Optional, Sequence, Tuple, Type
+from typing import Any, ClassVar, Dict, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch as th
@@ -57,6 +57,30 @@ class RL2QNetwork(nn.Module):
     def initial_states(self, batch: int, device: th.device | str = "cpu") -> LSTMStates:
         return zero_lstm_states(self.n_lstm_layers, batch, self.lstm_hidden_size, device)
 
+    def encode(
+        self,
+        obs: Dict[str, th.Tensor],
+        states: LSTMStates,
+        burn_in: int = 0,
+        burn_in_mask: Optional[th.Tensor] = None,
+    ) -> Tuple[th.Tensor, LSTMStates]:
+        """The history embedding e(tau_:t) of whole sequences (the LSTM's output), fused over time:
+        ``obs[k]`` ``[B, T, ...]`` -> ``[B, T, lstm_hidden_size]``."""
+        x = self.fusion(self.embedder(obs))
+        return unroll_lstm(self.lstm, x, states, burn_in, burn_in_mask)
+
+    def encode_step(self, obs: Dict[str, th.Tensor], states: LSTMStates) -> Tuple[th.Tensor, LSTMStates]:
+        """:meth:`encode` for one step of a batch of envs: ``obs[k]`` ``[N, ...]`` -> ``[N, hidden]``."""
+        x = self.fusion(self.embedder(obs)).unsqueeze(1)
+        out, next_states = self.lstm(x, states)
+        return out.squeeze(1), next_states
+
+    def q_values(self, obs: Dict[str, th.Tensor], history: th.Tensor) -> th.Tensor:
+        """Q-values from the history embedding (``[..., hidden]`` -> ``[..., A]``). RL² reads the
+        history alone; a subclass may condition on more of ``obs`` (the hook of
+        :class:`sb3_dream.common.conditioned.ConditionedQNetwork`)."""
+        return self.head(history)
+
     def forward(
         self,
         obs: Dict[str, th.Tensor],
@@ -65,9 +89,8 @@ class RL2QNetwork(nn.Module):
         burn_in_mask: Optional[th.Tensor] = None,
     ) -> Tuple[th.Tensor, LSTMStates]:
         """Q-values of whole sequences, fused over time: ``obs[k]`` ``[B, T, ...]`` -> ``[B, T, A]``."""
-        x = self.fusion(self.embedder(obs))
-        out, states = unroll_lstm(self.lstm, x, states, burn_in, burn_in_mask)
-        return self.head(out), states
+        out, states = self.encode(obs, states, burn_in, burn_in_mask)
+        return self.q_values(obs, out), states
 
     def step(
         self, obs: Dict[str, th.Tensor], states: LSTMStates, episode_start: th.Tensor
@@ -79,9 +102,8 @@ class RL2QNetwork(nn.Module):
         Returns ``(q, input_states, next_states)``; ``input_states`` are the (reset) states used.
         """
         states = reset_lstm_states(states, episode_start)
-        x = self.fusion(self.embedder(obs)).unsqueeze(1)
-        out, next_states = self.lstm(x, states)
-        return self.head(out.squeeze(1)), states, next_states
+        out, next_states = self.encode_step(obs, states)
+        return self.q_values(obs, out), states, next_states
 
 
 class RL2DQNPolicy(BasePolicy):
@@ -96,8 +118,11 @@ class RL2DQNPolicy(BasePolicy):
         :func:`~sb3_dream.common.embedders.check_trial_observation_space`).
     :param action_space: Discrete.
     :param lr_schedule: learning-rate schedule (the initial value sets Adam's lr).
+    :param network_kwargs: further arguments of :attr:`q_network_class` (a subclass's Q-network).
     """
 
+    #: the Q-network class (a subclass of :class:`RL2QNetwork`) built twice: online and target
+    q_network_class: ClassVar[Type[RL2QNetwork]] = RL2QNetwork
     action_space: spaces.Discrete
     observation_space: spaces.Dict
 
@@ -115,6 +140,7 @@ class RL2DQNPolicy(BasePolicy):
         normalize_images: bool = True,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
+        **network_kwargs: Any,
     ) -> None:
         self.check_spaces(observation_space, action_space)
         super().__init__(
@@ -131,8 +157,9 @@ class RL2DQNPolicy(BasePolicy):
             dueling=dueling,
             embed_keys=tuple(embed_keys),
             embed_kwargs=dict(embed_kwargs or {}),
+            **network_kwargs,
         )
-        self.q_net = RL2QNetwork(
+        self.q_net = self.q_network_class(
             observation_space,
             int(action_space.n),
             **{

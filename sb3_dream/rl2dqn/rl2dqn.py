@@ -41,13 +41,31 @@ def recurrent_double_dqn_loss(
     Q(s_{t+1}) (``[:, 1:]``); the online network picks argmax_a Q(s_{t+1}, a), the target network
     evaluates it. Both unrolls start from the stored state if the buffer has one, else from zeros.
     """
-    B = batch.actions.shape[0]
-    device = batch.actions.device
-    states = batch.lstm_states if batch.lstm_states is not None else q_net.initial_states(B, device)
+    states = initial_batch_states(q_net, batch)
     q_all, _ = q_net(batch.observations, states, burn_in, batch.burn_in_mask)  # [B, T + 1, A]
     with th.no_grad():
         q_next_target, _ = q_net_target(batch.observations, states)
-        targets = double_dqn_targets(q_all[:, 1:].detach(), q_next_target[:, 1:], batch.rewards, batch.dones, gamma)
+    return double_dqn_loss_from_q_values(q_all, q_next_target, batch, gamma, td_loss)
+
+
+def initial_batch_states(q_net: RL2QNetwork, batch: SequenceReplayBufferSamples) -> Tuple[th.Tensor, th.Tensor]:
+    """Where the unrolls over ``batch`` start: the stored LSTM states if the buffer has them, else zeros."""
+    if batch.lstm_states is not None:
+        return batch.lstm_states
+    return q_net.initial_states(batch.actions.shape[0], batch.actions.device)
+
+
+def double_dqn_loss_from_q_values(
+    q_all: th.Tensor,
+    q_target_all: th.Tensor,
+    batch: SequenceReplayBufferSamples,
+    gamma: float,
+    td_loss: str = "mse",
+) -> Tuple[th.Tensor, th.Tensor]:
+    """The masked double-DQN loss and mean Q(s, a) from the online (``q_all``) and target
+    (``q_target_all``, no gradient) Q-values of the ``T + 1`` observations, ``[B, T + 1, A]`` each."""
+    with th.no_grad():
+        targets = double_dqn_targets(q_all[:, 1:].detach(), q_target_all[:, 1:], batch.rewards, batch.dones, gamma)
     q_taken = q_all[:, :-1].gather(-1, batch.actions.unsqueeze(-1)).squeeze(-1)
     loss = masked_td_loss(q_taken, targets, batch.mask, td_loss)
     q_mean = (q_taken.detach() * batch.mask).sum() / batch.mask.sum().clamp(min=1.0)
@@ -259,7 +277,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
     # ------------------------------------------------------------------ setup
     def _check_env_spaces(self, observation_space: spaces.Space, action_space: spaces.Space) -> None:
         if not isinstance(action_space, spaces.Discrete):
-            raise ValueError(f"RL2DQN needs a Discrete action space, got {action_space}")
+            raise ValueError(f"{type(self).__name__} needs a Discrete action space, got {action_space}")
         policy_class = self.policy_class if isinstance(self.policy_class, type) else RL2DQNPolicy
         if issubclass(policy_class, RL2DQNPolicy):
             policy_class.check_spaces(observation_space, action_space)
@@ -334,7 +352,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         starts = th.as_tensor(np.asarray(self._last_episode_starts, dtype=np.float32), device=self.device)
         self.policy.set_training_mode(False)
         with th.no_grad():
-            q, input_states, self._lstm_states = self.q_net.step(obs, self._lstm_states, starts)
+            q, input_states, self._lstm_states = self._act_step(obs, self._lstm_states, starts)
         if self.stored_state:
             self._last_input_states = (input_states[0].cpu().numpy(), input_states[1].cpu().numpy())
         eps = 1.0 if self.num_timesteps < learning_starts else self.exploration_rate
@@ -342,6 +360,17 @@ class RL2DQN(TrialOffPolicyAlgorithm):
         explore = np.random.rand(n_envs) < eps
         actions = np.where(explore, np.random.randint(int(self.action_space.n), size=n_envs), greedy)
         return actions, actions
+
+    def _act_step(
+        self, obs: Dict[str, th.Tensor], states: Tuple[th.Tensor, th.Tensor], trial_start: th.Tensor
+    ) -> Tuple[th.Tensor, Tuple[th.Tensor, th.Tensor], Tuple[th.Tensor, th.Tensor]]:
+        """The Q-values the actor acts on during training (a hook: IMPORT conditions some trials
+        on the problem ID); returns ``(q, input_states, next_states)`` as ``q_net.step``."""
+        return self.q_net.step(obs, states, trial_start)
+
+    def _replay_add_kwargs(self) -> Dict[str, Any]:
+        """Extra per-step arguments of the replay buffer's ``add`` (a hook for subclasses)."""
+        return {}
 
     def _store_transition(
         self,
@@ -373,6 +402,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             infos,
             episode_start=self._last_episode_starts,
             lstm_states=self._last_input_states,
+            **self._replay_add_kwargs(),
         )
         self._last_obs = new_obs
         # the next observation starts a trial where one ended: reset those LSTM states only
@@ -400,12 +430,10 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             return
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)  # logs train/learning_rate
-        losses, q_means = [], []
+        stats: Dict[str, List[th.Tensor]] = {}
         for _ in range(gradient_steps):
             batch = self.replay_buffer.sample(batch_size)
-            loss, q_mean = recurrent_double_dqn_loss(
-                self.q_net, self.q_net_target, batch, self.gamma, self.td_loss, self.burn_in
-            )
+            loss, logged = self._loss(batch)
             self.policy.optimizer.zero_grad()
             loss.backward()
             th.nn.utils.clip_grad_norm_(self.q_net.parameters(), self.max_grad_norm)
@@ -413,14 +441,22 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:
                 polyak_update(self.q_net.parameters(), self.q_net_target.parameters(), self.tau)
-            losses.append(loss.detach())
-            q_means.append(q_mean)
+            for key, value in logged.items():
+                stats.setdefault(key, []).append(value)
         self.policy.set_training_mode(False)
         # one host sync per call, not per update
-        stats = th.stack([th.stack(losses).mean(), th.stack(q_means).mean()]).cpu().numpy()
+        means = th.stack([th.stack(values).mean() for values in stats.values()]).cpu().numpy()
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/loss", float(stats[0]))
-        self.logger.record("train/q_mean", float(stats[1]))
+        for key, value in zip(stats, means):
+            self.logger.record(f"train/{key}", float(value))
+
+    def _loss(self, batch: SequenceReplayBufferSamples) -> Tuple[th.Tensor, Dict[str, th.Tensor]]:
+        """One update's loss on a sampled batch and the detached values to log as ``train/<key>``
+        (a hook: IMPORT and VariBAD add their auxiliary losses)."""
+        loss, q_mean = recurrent_double_dqn_loss(
+            self.q_net, self.q_net_target, batch, self.gamma, self.td_loss, self.burn_in
+        )
+        return loss, {"loss": loss.detach(), "q_mean": q_mean}
 
 
 class RL2BatchTrialAgent(PolicyBatchAgent):
