@@ -423,7 +423,8 @@ def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluatio
     assert row["final_return_mean"] == pytest.approx(0.4) and row["final_return_std"] == pytest.approx(0.4)
     assert row["last_tenth_mean"] == pytest.approx(np.mean([(0.6 + 0.8) / 2, (1.0 + 0.0) / 2]))
     table = experiments.write_summary([row], tmp_path)
-    assert "| MetaBandit-v0 | dream | test | 2 | 0.400 ± 0.400 | 0.600 | - | 100 |" in table
+    # no oracle given; PEARL-UB of the bandit at |A| = 8: 1/8 + 7/8 x 1/8
+    assert "| MetaBandit-v0 | dream | test | 2 | 0.400 ± 0.400 | 0.600 | - | 0.234 | 100 |" in table
 
 
 def test_finished_runs_are_found_from_their_records_whatever_split_they_evaluated(tmp_path):
