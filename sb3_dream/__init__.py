@@ -6,6 +6,7 @@ from sb3_dream.evaluation import MetaEvalCallback, evaluate_meta
 from sb3_dream.import_dqn import IMPORT
 from sb3_dream.presets import PRESETS
 from sb3_dream.rl2dqn import RL2DQN
+from sb3_dream.varibad import VariBAD
 from sb3_dream.version import __version__
 
-__all__ = ["DREAM", "DreamPolicy", "IMPORT", "MetaEvalCallback", "PRESETS", "RL2DQN", "evaluate_meta", "__version__"]
+__all__ = ["DREAM", "DreamPolicy", "IMPORT", "MetaEvalCallback", "PRESETS", "RL2DQN", "VariBAD", "evaluate_meta", "__version__"]

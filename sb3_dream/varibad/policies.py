@@ -1,0 +1,169 @@
+"""VariBAD's networks in the DREAM paper's DQN form (Appendix B.3): the Q-network and the decoders."""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.preprocessing import is_image_space
+from torch import nn
+from torch.nn import functional as F
+
+from sb3_dream.common.conditioned import ConditionedQNetwork, ConditionedQPolicy
+from sb3_dream.common.embedders import TRIAL_KEYS, make_state_embedder
+from sb3_dream.rl2dqn.policies import CnnLstmPolicy as RL2CnnLstmPolicy
+
+
+def is_image_observation(observation_space: spaces.Space) -> bool:
+    """Whether the trial env's ``obs`` is an image (VariBAD then drops its state decoder by default)."""
+    space = observation_space.spaces.get("obs") if isinstance(observation_space, spaces.Dict) else None
+    return space is not None and is_image_space(space, check_channels=False)
+
+
+class TransitionDecoder(nn.Module):
+    """VariBAD's reward decoder R(r | s, a, z) and state decoder T(s' | s, a, z) (paper, Appendix B.3).
+
+    ``[e(s); e(a); z]`` -> linear 128 + ReLU -> linear 128 -> a reward head (1) and a state head
+    (the flattened next state), read with a mean-squared error. e(s) is the paper's state embedder
+    (learned anew here), e(a) an embedding matrix of 32 units. The second linear layer has no
+    activation, as in the authors' code.
+
+    :param state_space: the ``obs`` space.
+    :param predict_states: build the state head (the paper drops it for images).
+    """
+
+    def __init__(
+        self,
+        state_space: spaces.Space,
+        n_actions: int,
+        z_dim: int,
+        action_embed_dim: int = 32,
+        hidden_dim: int = 128,
+        predict_states: bool = True,
+        per_dim: int = 32,
+        state_hidden_dims: Sequence[int] = (256, 64),
+        image_embed_dim: int = 128,
+        normalize_images: bool = True,
+    ) -> None:
+        super().__init__()
+        self.state_shape = tuple(state_space.shape or ())
+        self.image = is_image_space(state_space, check_channels=False) if isinstance(state_space, spaces.Box) else False
+        self.normalize_images = normalize_images
+        self.state_embedder = make_state_embedder(
+            state_space, per_dim, state_hidden_dims, image_embed_dim, name="obs", normalize_images=normalize_images
+        )
+        self.action_embedder = nn.Embedding(n_actions, action_embed_dim)
+        self.z_dim = z_dim
+        self.hidden = nn.Linear(z_dim + int(self.state_embedder.embed_dim) + action_embed_dim, hidden_dim)
+        self.hidden2 = nn.Linear(hidden_dim, hidden_dim)
+        self.reward_head = nn.Linear(hidden_dim, 1)
+        self.state_dim = int(np.prod(self.state_shape)) if self.state_shape else 1
+        self.state_head: Optional[nn.Linear] = nn.Linear(hidden_dim, self.state_dim) if predict_states else None
+
+    def state_targets(self, states: th.Tensor) -> th.Tensor:
+        """The state head's target: the state as a flat float vector (images scaled to [0, 1])."""
+        flat = states.reshape(*states.shape[: states.dim() - len(self.state_shape)], self.state_dim).float()
+        return flat / 255.0 if self.image and self.normalize_images else flat
+
+    def _heads(self, h: th.Tensor) -> Tuple[th.Tensor, Optional[th.Tensor]]:
+        h = self.hidden2(h)
+        return self.reward_head(h).squeeze(-1), None if self.state_head is None else self.state_head(h)
+
+    def forward(self, z: th.Tensor, states: th.Tensor, actions: th.Tensor) -> Tuple[th.Tensor, Optional[th.Tensor]]:
+        """Predicted reward ``[*batch]`` and next state ``[*batch, state_dim]`` (or None) of taking
+        ``actions`` in ``states`` under z, all with the same leading dims."""
+        x = th.cat([z, self.state_embedder(states), self.action_embedder(actions.long())], dim=-1)
+        return self._heads(F.relu(self.hidden(x)))
+
+    def forward_pairs(
+        self, z: th.Tensor, states: th.Tensor, actions: th.Tensor
+    ) -> Tuple[th.Tensor, Optional[th.Tensor]]:
+        """:meth:`forward` for every (prefix, transition) pair of each sequence.
+
+        :param z: ``[B, P, z_dim]``, the z of P prefixes.
+        :param states: ``[B, T, ...]`` and ``actions`` ``[B, T]``: T transitions.
+        :return: rewards ``[B, P, T]`` and next states ``[B, P, T, state_dim]`` (or None).
+
+        The first layer over ``[z; e(s); e(a)]`` is split into its z part and its (s, a) part,
+        each computed once and added per pair: the same function as concatenating every pair,
+        without building ``B x P x T`` inputs.
+        """
+        w, b = self.hidden.weight, self.hidden.bias
+        h_z = F.linear(z, w[:, : self.z_dim])  # [B, P, H]
+        sa = th.cat([self.state_embedder(states), self.action_embedder(actions.long())], dim=-1)
+        h_sa = F.linear(sa, w[:, self.z_dim :], b)  # [B, T, H]
+        return self._heads(F.relu(h_z.unsqueeze(2) + h_sa.unsqueeze(1)))
+
+
+class VariBADQNetwork(ConditionedQNetwork):
+    """Q(s_t, i, z, a) over ``[e(s_t); e(i); z]`` with z around mu = e(tau_:t), and the decoders.
+
+    The encoder enc(z | tau_:t) is RL²'s history embedding (mu, 64 units, as in the authors' code);
+    :class:`TransitionDecoder` is ``decoder``. The decoder lives in the Q-network so one optimizer,
+    one gradient clipping and one save cover it (the target network's copy is unused).
+
+    :param decoder_hidden_dim: the decoder's layers (paper: 128).
+    :param decoder_action_embed_dim: the decoder's e(a) (paper: 32).
+    :param predict_states: build the state decoder (VariBAD picks: not for image states).
+    The other parameters are :class:`~sb3_dream.common.conditioned.ConditionedQNetwork`'s.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        n_actions: int,
+        fusion_dim: int = 64,
+        lstm_hidden_size: int = 64,
+        n_lstm_layers: int = 1,
+        dueling: bool = True,
+        embed_keys: Sequence[str] = TRIAL_KEYS,
+        embed_kwargs: Optional[Dict[str, Any]] = None,
+        q_hidden_dim: int = 64,
+        decoder_hidden_dim: int = 128,
+        decoder_action_embed_dim: int = 32,
+        predict_states: bool = True,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            n_actions,
+            fusion_dim,
+            lstm_hidden_size,
+            n_lstm_layers,
+            dueling,
+            embed_keys,
+            embed_kwargs,
+            q_hidden_dim,
+        )
+        ek = embed_kwargs or {}
+        self.decoder = TransitionDecoder(
+            observation_space.spaces["obs"],
+            n_actions,
+            lstm_hidden_size,
+            action_embed_dim=decoder_action_embed_dim,
+            hidden_dim=decoder_hidden_dim,
+            predict_states=predict_states,
+            per_dim=ek.get("per_dim", 32),
+            state_hidden_dims=ek.get("state_hidden_dims", (256, 64)),
+            image_embed_dim=ek.get("image_embed_dim", 128),
+            normalize_images=ek.get("normalize_images", True),
+        )
+
+
+class VariBADPolicy(ConditionedQPolicy):
+    """Policy of :class:`~sb3_dream.varibad.VariBAD`: an online and a target :class:`VariBADQNetwork`.
+
+    ``predict`` acts on z = mu = e(tau_:t), the posterior mean. ``policy_kwargs`` may set the
+    network's sizes (``q_hidden_dim``, ``decoder_hidden_dim``, ...); VariBAD fills ``predict_states``.
+    """
+
+    q_network_class = VariBADQNetwork
+
+
+class MultiInputLstmPolicy(VariBADPolicy):
+    """:class:`VariBADPolicy` for Dict observations (the default: grid trial envs)."""
+
+
+class CnnLstmPolicy(VariBADPolicy, RL2CnnLstmPolicy):
+    """:class:`VariBADPolicy` whose ``obs`` key must be an image (uint8 HxWxC or CxHxW): the CNN embedder."""
