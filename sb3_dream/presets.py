@@ -1,6 +1,7 @@
 """Named hyperparameter sets, the one source of presets: ``DREAM(env, **PRESETS["fast"])``.
 
-:data:`PRESETS` holds DREAM's, :data:`RL2DQN_PRESETS` RL2DQN's, under the same names; the
+:data:`PRESETS` holds DREAM's, :data:`RL2DQN_PRESETS` RL2DQN's (:data:`IMPORT_PRESETS`,
+:data:`VARIBAD_PRESETS` the other baselines'), under the same names; the
 experiment runner (``--preset``) and the rl-zoo3 hyperparameter files read them from here (a test
 checks the zoo's YAML files agree). Each preset is a dict of constructor keyword arguments.
 
@@ -17,6 +18,9 @@ stay the paper's:
 RL2DQN's ``fast`` makes the same schedule changes in its own terms: learning starts after about
 100 trials of the grid worlds (4000 env steps instead of 16000), epsilon decays over 60K steps
 (DREAM's 2 x 30K) instead of 500K, and targets sync every 1000 updates instead of 5000.
+
+:data:`IMPORT_PRESETS` and :data:`VARIBAD_PRESETS` are RL2DQN's: the baselines share its
+hyperparameters in the paper (Table 1) and its ``fast`` schedules here.
 
 Compared side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results/metabus.md).
 """
@@ -40,4 +44,9 @@ RL2DQN_PRESETS: Dict[str, Preset] = {
     "fast": {"learning_starts": 4000, "exploration_steps": 60_000, "target_update_interval": 1000},
 }
 
-__all__ = ["PRESETS", "Preset", "RL2DQN_PRESETS"]
+# IMPORT and VariBAD share RL²'s hyperparameters (the paper's Table 1) and so its schedules.
+IMPORT_PRESETS: Dict[str, Preset] = {"paper": {}, "fast": dict(RL2DQN_PRESETS["fast"])}
+
+VARIBAD_PRESETS: Dict[str, Preset] = {"paper": {}, "fast": dict(RL2DQN_PRESETS["fast"])}
+
+__all__ = ["IMPORT_PRESETS", "PRESETS", "Preset", "RL2DQN_PRESETS", "VARIBAD_PRESETS"]

@@ -15,8 +15,10 @@ optuna = pytest.importorskip("optuna")
 
 from sb3_dream.dream import DREAM  # noqa: E402
 from sb3_dream.rl2dqn import RL2DQN  # noqa: E402
-from sb3_dream.presets import PRESETS, RL2DQN_PRESETS  # noqa: E402
-from sb3_dream.zoo import SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
+from sb3_dream.import_dqn import IMPORT  # noqa: E402
+from sb3_dream.presets import IMPORT_PRESETS, PRESETS, RL2DQN_PRESETS, VARIBAD_PRESETS  # noqa: E402
+from sb3_dream.varibad import VariBAD  # noqa: E402
+from sb3_dream.zoo import MEASURED_ALGOS, SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
 from sb3_dream.zoo.cli import enjoy_args, main, train_args  # noqa: E402
 from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS  # noqa: E402
 
@@ -38,10 +40,20 @@ NOT_HYPERPARAMETERS = {
     "replay_buffer_kwargs",
 }
 # The paper's smaller buffers for the 3D env (Appendix B.4) and RL2DQN's image policy there.
-PAPER_3D = {"dream": {"buffer_size": 10_000, "execution_buffer_size": 60_000}, "rl2_dqn": {"buffer_size": 10_000}}
-POLICIES = {"dream": {}, "rl2_dqn": {"SignNav3D-v0": "CnnLstmPolicy"}}
+PAPER_3D = {
+    "dream": {"buffer_size": 10_000, "execution_buffer_size": 60_000},
+    "rl2_dqn": {"buffer_size": 10_000},
+    "import_dqn": {"buffer_size": 10_000},
+    "varibad": {"buffer_size": 10_000},
+}
+POLICIES = {
+    "dream": {},
+    "rl2_dqn": {"SignNav3D-v0": "CnnLstmPolicy"},
+    "import_dqn": {"SignNav3D-v0": "CnnLstmPolicy"},
+    "varibad": {"SignNav3D-v0": "CnnLstmPolicy"},
+}
 # The one source of named presets, per zoo algorithm: the packaged files must agree with it.
-ZOO_PRESETS = {"dream": PRESETS, "rl2_dqn": RL2DQN_PRESETS}
+ZOO_PRESETS = {"dream": PRESETS, "rl2_dqn": RL2DQN_PRESETS, "import_dqn": IMPORT_PRESETS, "varibad": VARIBAD_PRESETS}
 TINY = {
     "dream": [
         "exploration_learning_starts:5",
@@ -50,6 +62,8 @@ TINY = {
         "execution_buffer_size:1000",
     ],
     "rl2_dqn": ["learning_starts:50", "buffer_size:200"],
+    "import_dqn": ["learning_starts:50", "buffer_size:200"],
+    "varibad": ["learning_starts:50", "buffer_size:200"],
 }
 
 
@@ -59,6 +73,7 @@ def test_register_fills_rl_zoo3_tables():
     from rl_zoo3.hyperparams_opt import HYPERPARAMS_CONVERTER, HYPERPARAMS_SAMPLER
 
     assert rl_zoo3.ALGOS["dream"] is DREAM and rl_zoo3.ALGOS["rl2_dqn"] is RL2DQN
+    assert rl_zoo3.ALGOS["import_dqn"] is IMPORT and rl_zoo3.ALGOS["varibad"] is VariBAD
     assert rl_zoo3.ALGOS["ppo"].__name__ == "PPO"  # the zoo's own algorithms stay
     for algo in ZOO_ALGOS:
         assert HYPERPARAMS_SAMPLER[algo] is SAMPLERS[algo] and HYPERPARAMS_CONVERTER[algo] is CONVERTERS[algo]
@@ -91,7 +106,7 @@ def test_packaged_hyperparameters_are_the_paper_preset_for_every_env(algo):
 ZOO_KEYS = {"n_timesteps", "n_envs", "policy", "policy_kwargs"}
 
 
-@pytest.mark.parametrize("algo", ZOO_ALGOS)
+@pytest.mark.parametrize("algo", MEASURED_ALGOS)
 def test_measured_settings_are_the_fast_preset_and_valid_arguments(algo):
     cls = algorithms()[algo]
     arguments = set(inspect.signature(cls.__init__).parameters)
@@ -112,6 +127,17 @@ def test_measured_settings_are_the_fast_preset_and_valid_arguments(algo):
     assert config["SignNav3D-v0"]["policy"] == POLICIES[algo].get("SignNav3D-v0", "DreamPolicy")
     with pytest.raises(ValueError, match="settings='fast' is not valid; accepted values: 'paper', 'measured'"):
         hyperparams_path(algo, "fast")
+
+
+@pytest.mark.parametrize("algo", sorted(set(ZOO_ALGOS) - set(MEASURED_ALGOS)))
+def test_algorithms_without_measured_runs_ship_no_measured_settings(algo):
+    assert not hyperparams_path(algo).with_name(f"{algo}_measured.yml").exists()
+    with pytest.raises(ValueError, match=f"algo='{algo}' has no 'measured' settings"):
+        hyperparams_path(algo, "measured")
+    with pytest.raises(SystemExit, match="has no 'measured' settings"):
+        train_args(["--algo", algo, "--settings", "measured"])
+    # the fast preset is RL2DQN's schedules, which the baselines share
+    assert ZOO_PRESETS[algo]["fast"] == RL2DQN_PRESETS["fast"]
 
 
 def test_cli_settings_picks_the_packaged_file():

@@ -1,19 +1,22 @@
-"""rl-zoo3 integration: train, tune and watch DREAM and RL2DQN with the RL Baselines3 Zoo.
+"""rl-zoo3 integration: train, tune and watch DREAM, RL2DQN, IMPORT and VariBAD with the RL Baselines3 Zoo.
 
 rl-zoo3 has no plugin mechanism: its algorithms live in the dict ``rl_zoo3.utils.ALGOS`` (also
 exported as ``rl_zoo3.ALGOS``) and its Optuna samplers in
 ``rl_zoo3.hyperparams_opt.HYPERPARAMS_SAMPLER`` (with ``HYPERPARAMS_CONVERTER``, which turns a
 stored trial's parameters back into constructor arguments). :func:`register` adds to all three:
 
-===========  ====================================  ================================
-zoo name     algorithm                             default hyperparameter file
-===========  ====================================  ================================
-``dream``    :class:`sb3_dream.DREAM`              ``sb3_dream/zoo/hyperparams/dream.yml``
-``rl2_dqn``  :class:`sb3_dream.rl2dqn.RL2DQN`      ``sb3_dream/zoo/hyperparams/rl2_dqn.yml``
-===========  ====================================  ================================
+==============  ======================================  ==========================================
+zoo name        algorithm                               default hyperparameter file
+==============  ======================================  ==========================================
+``dream``       :class:`sb3_dream.DREAM`                ``sb3_dream/zoo/hyperparams/dream.yml``
+``rl2_dqn``     :class:`sb3_dream.rl2dqn.RL2DQN`        ``sb3_dream/zoo/hyperparams/rl2_dqn.yml``
+``import_dqn``  :class:`sb3_dream.import_dqn.IMPORT`    ``sb3_dream/zoo/hyperparams/import_dqn.yml``
+``varibad``     :class:`sb3_dream.varibad.VariBAD`      ``sb3_dream/zoo/hyperparams/varibad.yml``
+==============  ======================================  ==========================================
 
-Each also ships ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings measured``): the
-settings of the README's measured runs (their results: ``docs/results/README.md``).
+``dream`` and ``rl2_dqn`` also ship ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings
+measured``): the settings of the README's measured runs (their results:
+``docs/results/README.md``); IMPORT and VariBAD have no measured runs yet (:data:`MEASURED_ALGOS`).
 
 The ``sb3-dream-zoo`` command (:mod:`sb3_dream.zoo.cli`) registers them, imports
 :mod:`dream_envs` (so ``--env MetaBus-v0`` resolves) and runs rl-zoo3's own ``train``,
@@ -36,33 +39,39 @@ from typing import Dict, Type
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
-ZOO_ALGOS = ("dream", "rl2_dqn")
-SETTINGS = ("paper", "measured")  # the packaged hyperparameter files of each algorithm
+ZOO_ALGOS = ("dream", "rl2_dqn", "import_dqn", "varibad")
+SETTINGS = ("paper", "measured")  # the packaged hyperparameter files
+MEASURED_ALGOS = ("dream", "rl2_dqn")  # the algorithms with a "measured" file (the README's runs)
 
 
 def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
     """The zoo names and classes of this package's algorithms."""
     from sb3_dream.dream import DREAM
+    from sb3_dream.import_dqn import IMPORT
     from sb3_dream.rl2dqn import RL2DQN
+    from sb3_dream.varibad import VariBAD
 
-    return {"dream": DREAM, "rl2_dqn": RL2DQN}
+    return {"dream": DREAM, "rl2_dqn": RL2DQN, "import_dqn": IMPORT, "varibad": VariBAD}
 
 
 def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
-    """The packaged hyperparameter file of ``algo`` ("dream" or "rl2_dqn"), usable as ``--conf-file``.
+    """The packaged hyperparameter file of ``algo`` (one of :data:`ZOO_ALGOS`), usable as ``--conf-file``.
 
     ``settings="paper"``: the paper's values (the constructors' defaults); ``"measured"``: the
-    settings of the README's measured runs (the ``fast`` schedules and DREAM's options).
+    settings of the README's measured runs (the ``fast`` schedules and DREAM's options), for the
+    algorithms of :data:`MEASURED_ALGOS`.
     """
     if algo not in ZOO_ALGOS:
         raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")
     if settings not in SETTINGS:
         raise ValueError(f"settings={settings!r} is not valid; accepted values: {', '.join(map(repr, SETTINGS))}")
+    if settings != "paper" and algo not in MEASURED_ALGOS:
+        raise ValueError(f"algo={algo!r} has no {settings!r} settings (no measured runs yet); use settings='paper'")
     return HYPERPARAMS_DIR / (f"{algo}.yml" if settings == "paper" else f"{algo}_{settings}.yml")
 
 
 def register() -> None:
-    """Add ``dream`` and ``rl2_dqn`` to rl-zoo3's algorithm table and Optuna samplers (idempotent);
+    """Add this package's algorithms (:data:`ZOO_ALGOS`) to rl-zoo3's algorithm table and Optuna samplers (idempotent);
     ``--optimize`` then reports the held-out meta-test return of trial envs to Optuna
     (:func:`sb3_dream.zoo.hyperparams_opt.meta_test_trial_eval_callback`).
 
@@ -96,4 +105,4 @@ def register() -> None:
         zoo_exp_manager.TrialEvalCallback = callback
 
 
-__all__ = ["HYPERPARAMS_DIR", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]
+__all__ = ["HYPERPARAMS_DIR", "MEASURED_ALGOS", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]

@@ -186,7 +186,10 @@ def train_args(argv: Sequence[str]) -> List[str]:
         )
     defaults: List[str] = []
     if known.algo in ZOO_ALGOS and known.conf_file is None:
-        defaults += ["--conf-file", str(hyperparams_path(known.algo, settings or "paper"))]
+        try:
+            defaults += ["--conf-file", str(hyperparams_path(known.algo, settings or "paper"))]
+        except ValueError as error:  # e.g. --settings measured for an algorithm without measured runs
+            raise SystemExit(f"sb3-dream-zoo: {error}") from error
     if known.eval_env_kwargs is None and _is_trial_env(known.env):
         env_kwargs = [kv for kv in (known.env_kwargs or []) if kv.split(":", 1)[0] != "split"]
         defaults += ["--eval-env-kwargs", *env_kwargs, "split:'test'"]

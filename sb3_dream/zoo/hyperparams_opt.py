@@ -1,4 +1,4 @@
-"""Optuna samplers for ``sb3-dream-zoo train --algo dream|rl2_dqn --optimize``.
+"""Optuna samplers for ``sb3-dream-zoo train --algo dream|rl2_dqn|import_dqn|varibad --optimize``.
 
 Each sampler has rl-zoo3's signature ``(trial, n_actions, n_envs, additional_args) -> kwargs`` and
 returns constructor arguments that override the hyperparameter file. Optuna parameters are named
@@ -65,15 +65,40 @@ def sample_rl2_dqn_params(trial: "optuna.Trial", n_actions: int, n_envs: int, ad
     }
 
 
+def sample_import_dqn_params(
+    trial: "optuna.Trial", n_actions: int, n_envs: int, additional_args: dict
+) -> Dict[str, Any]:
+    """IMPORT: RL2DQN's search and the auxiliary loss's weight (the authors': 1)."""
+    return {
+        **sample_rl2_dqn_params(trial, n_actions, n_envs, additional_args),
+        "aux_loss_coef": trial.suggest_float("aux_loss_coef", 0.01, 1.0, log=True),
+    }
+
+
+def sample_varibad_params(trial: "optuna.Trial", n_actions: int, n_envs: int, additional_args: dict) -> Dict[str, Any]:
+    """VariBAD: RL2DQN's search and the decoders' loss weight (1)."""
+    return {
+        **sample_rl2_dqn_params(trial, n_actions, n_envs, additional_args),
+        "decoder_loss_coef": trial.suggest_float("decoder_loss_coef", 0.01, 1.0, log=True),
+    }
+
+
 def convert_params(params: Dict[str, Any]) -> Dict[str, Any]:
     """A stored trial's parameters as constructor arguments (they share names)."""
     return dict(params)
 
 
-SAMPLERS: Dict[str, Callable[..., Dict[str, Any]]] = {"dream": sample_dream_params, "rl2_dqn": sample_rl2_dqn_params}
+SAMPLERS: Dict[str, Callable[..., Dict[str, Any]]] = {
+    "dream": sample_dream_params,
+    "rl2_dqn": sample_rl2_dqn_params,
+    "import_dqn": sample_import_dqn_params,
+    "varibad": sample_varibad_params,
+}
 CONVERTERS: Dict[str, Callable[[Dict[str, Any]], Dict[str, Any]]] = {
     "dream": convert_dream_params,
     "rl2_dqn": convert_params,
+    "import_dqn": convert_params,
+    "varibad": convert_params,
 }
 
 
