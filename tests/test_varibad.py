@@ -33,7 +33,8 @@ def test_paper_defaults_sizes_and_short_form():
     mine = inspect.signature(VariBAD.__init__).parameters
     assert set(mine) - set(rl2) == {"latent_variance", "decoder_loss_coef", "predict_states"}
     assert all(mine[k].default == p.default for k, p in rl2.items() if k != "policy_kwargs")
-    assert (model.learning_rate, model.batch_size, model.buffer_size, model.learning_starts) == (1e-4, 32, 16_000, 16_000)
+    assert (model.learning_rate, model.batch_size, model.buffer_size) == (1e-4, 32, 16_000)
+    assert model.learning_starts == 16_000 and model.exploration_schedule(500_000) == pytest.approx(0.01)
     assert (model.latent_variance, model.decoder_loss_coef, model.predict_states) == (1e-5, 1.0, None)
     net = model.q_net
     assert net.lstm.hidden_size == 64 and net.q_hidden[0].in_features == 64 + 64 + 64  # [e(s); e(i); mu]
@@ -132,7 +133,8 @@ def test_update_loss_is_td_plus_decoder_loss_and_z_is_sampled():
     assert loss.item() == pytest.approx((logged["td_loss"] + 0.3 * decoder).item(), rel=1e-6)
     # with latent_variance 0, z = mu: the decoder loss is the one of the online history embedding
     history, _ = model.q_net.encode(batch.observations, model.q_net.initial_states(4))
-    assert varibad_decoder_loss(model.q_net.decoder, history, batch)[0].item() == pytest.approx(decoder.item(), rel=1e-5)
+    recomputed = varibad_decoder_loss(model.q_net.decoder, history, batch)[0]
+    assert recomputed.item() == pytest.approx(decoder.item(), rel=1e-5)
     model.latent_variance = 1e-2
     mu = th.zeros(20_000, 8)
     z = model.sample_z(model.q_net, mu)

@@ -6,15 +6,14 @@ from typing import Any, ClassVar, Dict, List, NamedTuple, Optional, Tuple, Type,
 
 import numpy as np
 import torch as th
-from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
+from dream_envs.checks import check_non_negative
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.conditioned import conditioned_double_dqn_loss
 from sb3_dream.common.recurrent import reset_lstm_states
-from dream_envs.checks import check_non_negative
 from sb3_dream.import_dqn.policies import CnnLstmPolicy, IMPORTPolicy, IMPORTQNetwork, MultiInputLstmPolicy
 from sb3_dream.rl2dqn.rl2dqn import RL2DQN
 

@@ -42,7 +42,9 @@ class IMPORTQNetwork(ConditionedQNetwork):
         problem_hidden_dim: int = 256,
     ) -> None:
         if problem_nvec is None or len(problem_nvec) == 0:
-            raise ValueError("problem_nvec is required: the sizes of the env's problem features (trial_spec()['problem_nvec'])")
+            raise ValueError(
+                "problem_nvec is required: the sizes of the env's problem features (trial_spec()['problem_nvec'])"
+            )
         super().__init__(
             observation_space,
             n_actions,
