@@ -94,7 +94,15 @@ class TransitionDecoder(nn.Module):
         h_z = F.linear(z, w[:, : self.z_dim])  # [B, P, H]
         sa = th.cat([self.state_embedder(states), self.action_embedder(actions.long())], dim=-1)
         h_sa = F.linear(sa, w[:, self.z_dim :], b)  # [B, T, H]
-        return self._heads(F.relu(h_z.unsqueeze(2) + h_sa.unsqueeze(1)))
+        h = F.relu(h_z.unsqueeze(2) + h_sa.unsqueeze(1))  # [B, P, T, H]
+        # No activation follows the second layer, so it composes with the heads into one linear map:
+        # per pair, (1 + state_dim) x H products instead of H x H more (the same function; the
+        # gradients reach both layers through the product).
+        heads = [self.reward_head] + ([] if self.state_head is None else [self.state_head])
+        w_heads = th.cat([head.weight for head in heads])  # [1 + D, H]
+        b_heads = th.cat([head.bias for head in heads])
+        out = F.linear(h, w_heads @ self.hidden2.weight, w_heads @ self.hidden2.bias + b_heads)
+        return out[..., 0], None if self.state_head is None else out[..., 1:]
 
 
 class VariBADQNetwork(ConditionedQNetwork):
