@@ -86,7 +86,9 @@ class VariBAD(RL2DQN):
 
     :param latent_variance: nu^2 of z ~ N(mu, nu^2 I) in updates (paper: 1e-5; 0: z = mu).
     :param decoder_loss_coef: weight of the decoders' loss (1).
-    :param predict_states: keep the state decoder (None: unless ``obs`` is an image).
+    :param predict_states: keep the state decoder (None: unless ``obs`` is an image). Forced on
+        for images, it predicts every pixel for every (prefix, transition) pair: memory grows as
+        ``batch_size x sequence_length^2 x pixels``.
     The other parameters are :class:`~sb3_dream.rl2dqn.RL2DQN`'s.
     """
 
