@@ -19,7 +19,7 @@ replay buffer, without :func:`stable_baselines3.common.preprocessing.preprocess_
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence
+from typing import Dict, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch as th
@@ -35,6 +35,70 @@ def _flatten_batch(x: th.Tensor, event_shape: Sequence[int]) -> tuple[th.Tensor,
     n_event = len(event_shape)
     batch_shape = tuple(x.shape[: x.dim() - n_event]) if n_event else tuple(x.shape)
     return x.reshape(-1, *event_shape), batch_shape
+
+
+class DistinctFrames(NamedTuple):
+    """A batch of image states given as its distinct frames and, for each position, which one it holds.
+
+    :class:`ImageEmbedder` runs its CNN over ``frames`` alone and indexes the result, so a frame the
+    batch holds many times (a blocked move, a revisited view, a trajectory sampled twice) costs one
+    forward and one backward pass, and positions no loss reads (a padded trajectory's tail) none.
+    The embeddings are the same function of each frame; only float summation order differs
+    (the gradient of a frame held k times is summed before the CNN's backward, not after).
+    """
+
+    frames: th.Tensor  # [U, *frame] each distinct frame once, in the order of first appearance
+    index: th.Tensor  # [*batch] long: the row of ``frames`` at each position; U: no frame (embeds as 0)
+
+
+# Odd multipliers of the frame hash, one per 8-byte word (drawn once; any fixed draw works).
+_HASH_WEIGHTS: Dict[int, np.ndarray] = {}
+
+
+def distinct_frame_index(frames: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Where each distinct frame of ``frames`` ``[N, *frame]`` first appears, and which one each is.
+
+    :return: ``first`` ``[U]`` (increasing) and ``inverse`` ``[N]`` with ``frames[first[inverse]]``
+        equal to ``frames`` byte for byte.
+
+    Frames are hashed as sums of their 8-byte words times fixed odd multipliers (modulo 2^64), then
+    every repeat is compared with its representative byte for byte; should two different frames
+    share a hash, whole frames are compared instead (exact either way, and the hash is cheaper than
+    sorting whole frames).
+    """
+    n = len(frames)
+    flat = np.ascontiguousarray(frames).reshape(n, -1)
+    if n == 0 or flat.shape[1] % 8:
+        return distinct_frame_index_exact(flat)
+    words = flat.view(np.uint64)
+    weights = _HASH_WEIGHTS.get(words.shape[1])
+    if weights is None:
+        weights = np.random.default_rng(0).integers(0, 2**63, size=words.shape[1], dtype=np.uint64)
+        weights = weights * np.uint64(2) + np.uint64(1)
+        _HASH_WEIGHTS[words.shape[1]] = weights
+    keys = (words * weights).sum(axis=1, dtype=np.uint64)
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)  # numpy 2.0.x gave it the input's dimensions
+    repeat = first[inverse] != np.arange(n)
+    if not np.array_equal(flat[repeat], flat[first[inverse[repeat]]]):
+        return distinct_frame_index_exact(flat)  # two frames shared a hash
+    return _in_order_of_appearance(first, inverse)
+
+
+def distinct_frame_index_exact(frames: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`distinct_frame_index` by sorting whole frames (no hash)."""
+    flat = np.ascontiguousarray(frames).reshape(len(frames), -1)
+    keys = flat.view(np.dtype((np.void, flat.shape[1])))[:, 0] if flat.shape[1] else np.zeros(len(flat))
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    return _in_order_of_appearance(first, inverse.reshape(-1))
+
+
+def _in_order_of_appearance(first: np.ndarray, inverse: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """``np.unique``'s ``first`` and ``inverse`` with the distinct values renumbered by first appearance."""
+    order = np.argsort(first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inverse]
 
 
 def relu_mlp(in_dim: int, hidden_dims: Sequence[int]) -> tuple[nn.Sequential, int]:
@@ -195,8 +259,17 @@ class ImageEmbedder(nn.Module):
     def _chw(self, shape: Sequence[int]) -> tuple[int, ...]:
         return tuple(shape) if self.channels_first else (shape[2], shape[0], shape[1])
 
-    def forward(self, x: th.Tensor) -> th.Tensor:
+    def forward(self, x: Union[th.Tensor, DistinctFrames]) -> th.Tensor:
+        """Frames ``[*batch, *frame]`` (uint8), or a :class:`DistinctFrames` of them -> ``[*batch, embed_dim]``."""
+        if isinstance(x, DistinctFrames):
+            return self.index(self.embed_frames(x.frames), x.index)
         flat, batch_shape = _flatten_batch(x, self.event_shape)
+        return self.embed_frames(flat).reshape(*batch_shape, self.embed_dim)
+
+    def embed_frames(self, flat: th.Tensor) -> th.Tensor:
+        """The CNN and the linear layer over frames ``[N, *frame]`` -> ``[N, embed_dim]``."""
+        if not len(flat):
+            return self.linear[0].weight.new_zeros(0, self.embed_dim)
         if not self.channels_first:
             flat = flat.permute(0, 3, 1, 2)
         if self.downsample > 1:  # pool first: the copy below then moves a fraction of the pixels
@@ -204,7 +277,29 @@ class ImageEmbedder(nn.Module):
         flat = flat.to(dtype=th.float32, memory_format=th.channels_last)
         if self.normalize:
             flat = flat / 255.0
-        return self.linear(self.cnn(flat)).reshape(*batch_shape, self.embed_dim)
+        return self.linear(self.cnn(flat))
+
+    @staticmethod
+    def index(embeddings: th.Tensor, index: th.Tensor) -> th.Tensor:
+        """Row ``index`` of ``embeddings`` ``[U, D]`` at each position, zeros where ``index`` is U."""
+        return th.cat([embeddings, embeddings.new_zeros(1, embeddings.shape[1])])[index]
+
+    def embed_pair(
+        self, current: DistinctFrames, following: DistinctFrames, shared: int
+    ) -> Tuple[th.Tensor, th.Tensor]:
+        """The embeddings of a batch's states s (with gradient) and next states s' (without), each
+        distinct frame through the CNN once: a frame that is both some row's s and some row's s'
+        (a blocked move, consecutive transitions of an episode) reuses its s pass.
+
+        ``current`` and ``following`` share their first and last ``shared`` frames: those of
+        ``current.frames[-shared:]`` are ``following.frames[:shared]`` (how
+        :meth:`~sb3_dream.dream.buffers.ExecutionBuffer.batch` lays them out).
+        """
+        e_current = self.embed_frames(current.frames)
+        with th.no_grad():
+            reused = e_current[len(e_current) - shared :].detach()
+            e_following = th.cat([reused, self.embed_frames(following.frames[shared:])])
+        return self.index(e_current, current.index), self.index(e_following, following.index)
 
 
 def make_state_embedder(

@@ -21,6 +21,9 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.preprocessing import is_image_space
+
+from sb3_dream.common.embedders import DistinctFrames, distinct_frame_index
 
 
 class TrajectoryBatch(NamedTuple):
@@ -30,6 +33,9 @@ class TrajectoryBatch(NamedTuple):
     prev_rewards: th.Tensor  # [B, T+1, 1]
     lengths: th.Tensor  # [B] number of transitions T_b
     problem_features: th.Tensor  # [B, P]
+    # image states: each distinct frame of s_0 .. s_{T_b} once, and which one each position holds
+    # (padding after s_{T_b} holds none); what the networks embed in updates (None otherwise)
+    frames: Optional[DistinctFrames] = None
 
 
 class ExecutionBatch(NamedTuple):
@@ -42,6 +48,16 @@ class ExecutionBatch(NamedTuple):
     slots: np.ndarray  # [N] the exploration-buffer slots of the batch's trials, one per trajectory to read
     steps: th.Tensor  # [B] the step of s within its execution episode (s' is at steps + 1)
     trajectories: th.Tensor  # [B] which of ``slots`` holds each transition's exploration trajectory
+    # image states: the distinct frames of s and of s' (see ExecutionBuffer.batch; None otherwise)
+    state_frames: Optional[DistinctFrames] = None
+    next_state_frames: Optional[DistinctFrames] = None
+    shared_frames: int = 0  # frames both some s and some s': state_frames' last, next_state_frames' first
+
+
+def _image_states(space: spaces.Space) -> bool:
+    """Whether the networks embed these states with the CNN (uint8 images), so batches carry their
+    distinct frames."""
+    return isinstance(space, spaces.Box) and is_image_space(space, check_channels=False, normalized_image=False)
 
 
 def _state_dtype(space: spaces.Space) -> np.dtype:
@@ -49,7 +65,16 @@ def _state_dtype(space: spaces.Space) -> np.dtype:
 
 
 class ExplorationBuffer:
-    """Ring buffer of exploration trajectories of at most ``max_length`` transitions."""
+    """Ring buffer of exploration trajectories of at most ``max_length`` transitions.
+
+    With image states, :meth:`get` also gives each distinct frame of the trajectories once
+    (``TrajectoryBatch.frames``): every network's CNN then runs once per distinct frame, and not
+    over the padding after each trajectory's end, whose states no loss reads.
+    ``distinct_frames = False`` (on the class or a buffer) gives every position's frame instead.
+    """
+
+    distinct_frames = True
+    image_states = False  # set from the state space (False for buffers pickled before it existed)
 
     def __init__(
         self, capacity: int, max_length: int, state_space: spaces.Space, n_problem_features: int, device: th.device
@@ -64,6 +89,7 @@ class ExplorationBuffer:
         self.problem_features = np.zeros((capacity, n_problem_features), dtype=np.int64)
         self.generation = np.zeros(capacity, dtype=np.int64)  # bumped when a slot is overwritten
         self.pos, self.full = 0, False
+        self.image_states = _image_states(state_space)
 
     def __len__(self) -> int:
         return self.capacity if self.full else self.pos
@@ -94,18 +120,35 @@ class ExplorationBuffer:
         """The trajectories in ``slots``, cut to the longest of them."""
         t = int(self.lengths[slots].max())
         to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
+        states, frames = self.states[slots, : t + 1], None
+        if self.image_states and self.distinct_frames:
+            lengths = self.lengths[slots]
+            valid = np.arange(t + 1)[None] <= lengths[:, None]  # s_0 .. s_{T_b}; later ones are padding
+            held = states[valid]
+            first, inverse = distinct_frame_index(held)
+            index = np.full(valid.shape, len(first), dtype=np.int64)
+            index[valid] = inverse
+            frames = DistinctFrames(to(held[first]), to(index))
         return TrajectoryBatch(
-            states=to(self.states[slots, : t + 1]),
+            states=to(states),
             actions=to(self.actions[slots, :t]),
             prev_actions=to(self.prev_actions[slots, : t + 1]),
             prev_rewards=to(self.prev_rewards[slots, : t + 1]),
             lengths=to(self.lengths[slots]),
             problem_features=to(self.problem_features[slots]),
+            frames=frames,
         )
 
 
 class ExecutionBuffer:
-    """Ring buffer of execution transitions, each pointing at its trial's exploration trajectory."""
+    """Ring buffer of execution transitions, each pointing at its trial's exploration trajectory.
+
+    With image states, :meth:`batch` also gives the distinct frames of s and s' (see there);
+    ``distinct_frames = False`` (on the class or a buffer) leaves them out.
+    """
+
+    distinct_frames = True
+    image_states = False  # set from the state space (False for buffers pickled before it existed)
 
     def __init__(self, capacity: int, observation_space: spaces.Dict, device: th.device) -> None:
         self.capacity, self.device = capacity, device
@@ -123,6 +166,7 @@ class ExecutionBuffer:
         self.next_in_episode = np.full(capacity, -1, dtype=np.int64)  # the episode's next transition, or -1
         self._last_index = np.full(0, -1, dtype=np.int64)  # per env: where its last transition went
         self.pos, self.full = 0, False
+        self.image_states = _image_states(state_space)
 
     def __setstate__(self, state: Dict[str, object]) -> None:
         # Buffers pickled before the execution step was stored: all steps unknown, taken as 0.
@@ -183,18 +227,46 @@ class ExecutionBuffer:
         return links
 
     def batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray) -> ExecutionBatch:
-        """Transitions ``idx``; transition j reads trajectory ``trajectories[j]`` of ``slots``."""
+        """Transitions ``idx``; transition j reads trajectory ``trajectories[j]`` of ``slots``.
+
+        With image states, the distinct frames of s and s' are laid out once, as [frames only some
+        s holds, frames both some s and some s' hold, frames only some s' holds]: ``state_frames``
+        are the first two groups, ``next_state_frames`` the last two (views of one tensor), and
+        ``shared_frames`` the middle group's size, so the online network embeds s' by reusing its
+        s pass where it can (:meth:`~sb3_dream.common.embedders.ImageEmbedder.embed_pair`).
+        """
         to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
+        states, next_states = self.states[idx], self.next_states[idx]
+        frames: Dict[str, Any] = {}
+        if self.image_states and self.distinct_frames:
+            n = len(idx)
+            both = np.concatenate([states, next_states])
+            first, inverse = distinct_frame_index(both)
+            in_current, in_following = np.zeros(len(first), bool), np.zeros(len(first), bool)
+            in_current[inverse[:n]], in_following[inverse[n:]] = True, True
+            group = np.where(in_current, np.where(in_following, 1, 0), 2)
+            order = np.argsort(group, kind="stable")
+            rank = np.empty_like(order)
+            rank[order] = np.arange(len(order))
+            inverse = rank[inverse]
+            only_current, shared = int((group == 0).sum()), int((group == 1).sum())
+            distinct = to(both[first[order]])
+            frames = dict(
+                state_frames=DistinctFrames(distinct[: only_current + shared], to(inverse[:n])),
+                next_state_frames=DistinctFrames(distinct[only_current:], to(inverse[n:] - only_current)),
+                shared_frames=shared,
+            )
         return ExecutionBatch(
-            states=to(self.states[idx]),
+            states=to(states),
             instructions=to(self.instructions[idx]),
             actions=to(self.actions[idx]),
             rewards=to(self.rewards[idx]),
-            next_states=to(self.next_states[idx]),
+            next_states=to(next_states),
             dones=to(self.dones[idx]),
             slots=slots,
             steps=to(self.steps[idx]),
             trajectories=to(trajectories),
+            **frames,
         )
 
 

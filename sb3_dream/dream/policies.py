@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 import copy
-from typing import Any, Dict, Optional, Sequence, Tuple, Type
+from typing import Any, Dict, Optional, Sequence, Tuple, Type, Union
 
 import numpy as np
 import torch as th
@@ -24,11 +24,22 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from dream_envs.checks import check_non_negative, check_positive_int
-from sb3_dream.common.embedders import MultiDiscreteEmbedder, make_state_embedder, relu_mlp
+from sb3_dream.common.embedders import (
+    DistinctFrames,
+    ImageEmbedder,
+    MultiDiscreteEmbedder,
+    make_state_embedder,
+    relu_mlp,
+)
 from sb3_dream.common.recurrent import DuelingHead
 from sb3_dream.dream.buffers import ExecutionBatch
 
 LSTMState = Tuple[th.Tensor, th.Tensor]
+
+
+def _frames_or(frames: Optional[DistinctFrames], states: th.Tensor) -> Union[th.Tensor, DistinctFrames]:
+    """A batch's distinct image frames where it has them (each embedded once), else its states."""
+    return states if frames is None else frames
 
 
 class ProblemEncoder(nn.Module):
@@ -68,8 +79,15 @@ class TrajectoryDecoder(nn.Module):
         self.lstm = nn.LSTM(64, hidden_size, batch_first=True)
         self.head = nn.Sequential(nn.Linear(hidden_size, 128), nn.ReLU(), nn.Linear(128, z_dim))
 
-    def forward(self, states: th.Tensor, actions: th.Tensor, lengths: Optional[th.Tensor] = None) -> th.Tensor:
-        """``states`` [B, T+1, ...] (s_0 .. s_T, padded), ``actions`` [B, T] -> g for prefixes [B, T+1, z].
+    def forward(
+        self,
+        states: Union[th.Tensor, DistinctFrames],
+        actions: th.Tensor,
+        lengths: Optional[th.Tensor] = None,
+    ) -> th.Tensor:
+        """``states`` [B, T+1, ...] (s_0 .. s_T, padded; image states may come as their
+        :class:`~sb3_dream.common.embedders.DistinctFrames`), ``actions`` [B, T] -> g for prefixes
+        [B, T+1, z].
 
         Prefix t's output only depends on the first t transitions, so padding after a trajectory's
         end never changes its valid prefixes. With ``lengths`` [B] (transitions in each trajectory)
@@ -157,10 +175,20 @@ class ExecutionQNetwork(nn.Module):
     def recurrent(self) -> bool:
         return self.lstm is not None
 
-    def embed(self, states: th.Tensor, instructions: th.Tensor, steps: Optional[th.Tensor] = None) -> th.Tensor:
+    def embed(
+        self,
+        states: Union[th.Tensor, DistinctFrames],
+        instructions: th.Tensor,
+        steps: Optional[th.Tensor] = None,
+    ) -> th.Tensor:
         """[e(s); e(i)] (and e(t) with ``time_steps``): computed once and shared by the rows that
-        differ only in z. A recurrent network's LSTM runs over these (:meth:`recur`)."""
-        parts = [self.state_embed(states), self.instruction_embed(instructions)]
+        differ only in z. A recurrent network's LSTM runs over these (:meth:`recur`). Image
+        ``states`` may come as their :class:`~sb3_dream.common.embedders.DistinctFrames`."""
+        return self.join(self.state_embed(states), instructions, steps)
+
+    def join(self, state_embedding: th.Tensor, instructions: th.Tensor, steps: Optional[th.Tensor] = None) -> th.Tensor:
+        """:meth:`embed` from e(s) already computed."""
+        parts = [state_embedding, self.instruction_embed(instructions)]
         if self.time_embed is not None:
             if steps is None:
                 raise ValueError("this execution Q-network takes the execution step: pass steps")
@@ -207,6 +235,15 @@ class ExecutionQNetwork(nn.Module):
         if self.lstm is not None:
             current, following = self._episode_inputs(batch)
             return current, following.detach()
+        if batch.state_frames is not None and isinstance(self.state_embed, ImageEmbedder):
+            # each distinct frame of s and s' through the CNN once; s' reuses the frames s holds
+            e_current, e_following = self.state_embed.embed_pair(
+                batch.state_frames, batch.next_state_frames, batch.shared_frames
+            )
+            current = self.join(e_current, batch.instructions, batch.steps)
+            with th.no_grad():
+                following = self.join(e_following, batch.instructions, batch.steps + 1)
+            return current, following
         current = self.embed(batch.states, batch.instructions, batch.steps)
         with th.no_grad():
             following = self.next_inputs(batch)
@@ -216,7 +253,7 @@ class ExecutionQNetwork(nn.Module):
         """:meth:`transition_inputs`' s' part alone (a target network's pass)."""
         if self.lstm is not None:
             return self._episode_inputs(batch)[1]
-        return self.embed(batch.next_states, batch.instructions, batch.steps + 1)
+        return self.embed(_frames_or(batch.next_state_frames, batch.next_states), batch.instructions, batch.steps + 1)
 
     def _episode_inputs(self, batch: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
         """A recurrent network's LSTM outputs for each transition's s and s' ([B, D] each).
@@ -232,7 +269,7 @@ class ExecutionQNetwork(nn.Module):
             0, episode, step + 1, reduce="amax"
         )
         last = step + 1 == length[episode]  # where s' is the episode's last state, no later s holds it
-        embedding = self.embed(batch.states, batch.instructions, step)
+        embedding = self.embed(_frames_or(batch.state_frames, batch.states), batch.instructions, step)
         last_state = self.embed(batch.next_states[last], batch.instructions[last], step[last] + 1)
         sequence = embedding.new_zeros(n_episodes, horizon + 1, embedding.shape[1])
         sequence = sequence.index_put((episode, step), embedding)
@@ -282,14 +319,15 @@ class ExplorationQNetwork(nn.Module):
 
     def forward(
         self,
-        states: th.Tensor,
+        states: Union[th.Tensor, DistinctFrames],
         prev_actions: th.Tensor,
         prev_rewards: th.Tensor,
         hidden: Optional[LSTMState] = None,
         steps: Optional[th.Tensor] = None,
     ) -> Tuple[th.Tensor, LSTMState]:
-        """Inputs [B, T, ...] (``steps`` [B, T] with ``time_steps``) -> Q-values [B, T, A] and the
-        final LSTM state."""
+        """Inputs [B, T, ...] (``steps`` [B, T] with ``time_steps``; image states may come as their
+        :class:`~sb3_dream.common.embedders.DistinctFrames`) -> Q-values [B, T, A] and the final
+        LSTM state."""
         parts = [self.state_embed(states), self.prev_action_embed(prev_actions), self.prev_reward_embed(prev_rewards)]
         if self.time_embed is not None:
             if steps is None:

@@ -6,15 +6,22 @@ a sampled batch, the losses of :mod:`sb3_dream.dream.losses`, and the optimizer 
 * :func:`exploration_update`: the exploration DDQN over whole trajectories on the
   information-gain rewards, recomputed from the current f and g (:func:`reward_codes`);
 * :func:`parallel_update`: both, the exploration step in a second thread (same results).
+
+With image states the sampled batches carry each distinct frame once
+(:class:`~sb3_dream.common.embedders.DistinctFrames`), and every network's pass embeds those
+instead of every position: a frame held by several positions (a blocked move, a revisited view, a
+trajectory or frame sampled twice, the s' of one transition that is the s of another) goes through
+each CNN once, and the padding after a trajectory's end, which no loss reads, not at all.
 """
 
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Tuple, Union
 
 import torch as th
 
+from sb3_dream.common.embedders import DistinctFrames
 from sb3_dream.dream import losses
 from sb3_dream.dream.buffers import ExecutionBatch, TrajectoryBatch
 from sb3_dream.dream.policies import DreamPolicy
@@ -23,16 +30,21 @@ if TYPE_CHECKING:
     from sb3_dream.dream.dream import DREAM
 
 
+def trajectory_states(traj: TrajectoryBatch) -> Union[th.Tensor, DistinctFrames]:
+    """What the networks embed of ``traj``'s states: its distinct frames where it has them."""
+    return traj.states if traj.frames is None else traj.frames
+
+
 @th.no_grad()
 def reward_codes(policy: DreamPolicy, traj: TrajectoryBatch) -> Tuple[th.Tensor, th.Tensor]:
     """g of every prefix and f(T) for the exploration rewards: the current networks, as targets."""
-    return policy.decoder(traj.states, traj.actions), policy.encoder(traj.problem_features)
+    return policy.decoder(trajectory_states(traj), traj.actions), policy.encoder(traj.problem_features)
 
 
 @th.no_grad()
 def target_decoder_z(policy: DreamPolicy, traj: TrajectoryBatch) -> th.Tensor:
     """The target decoder's g(tau^exp) of each trajectory (the "own" target z of the loss with z = g)."""
-    return policy.decoder_target(traj.states, traj.actions, traj.lengths)
+    return policy.decoder_target(trajectory_states(traj), traj.actions, traj.lengths)
 
 
 def execution_update(
@@ -50,7 +62,7 @@ def execution_update(
     another thread computes it; ``before_step`` is called before the optimizer changes the networks.
     """
     policy, net = model.policy, model.policy.execution_q
-    g_all = policy.decoder(traj.states, traj.actions)  # [N, T+1, z]: every prefix in one pass
+    g_all = policy.decoder(trajectory_states(traj), traj.actions)  # [N, T+1, z]: every prefix in one pass
     f = policy.encoder(traj.problem_features)  # [N, z]
     owner = exe.trajectories
     z_g = g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner]  # g(tau^exp) of each trial
@@ -102,7 +114,7 @@ def exploration_update(model: "DREAM", traj: TrajectoryBatch, g: th.Tensor, f: t
     clock = None  # the step of each state within its exploration episode, with exploration_time_input
     if policy.exploration_time_input:
         clock = th.arange(traj.actions.shape[1] + 1, device=rewards.device).expand(len(traj.actions), -1)
-    inputs = (traj.states, traj.prev_actions, traj.prev_rewards, None, clock)
+    inputs = (trajectory_states(traj), traj.prev_actions, traj.prev_rewards, None, clock)
     q_all, _ = policy.exploration_q(*inputs)  # [B, T+1, A]
     with th.no_grad():
         q_target_all, _ = policy.exploration_q_target(*inputs)
