@@ -90,6 +90,12 @@ def test_models_of_each_algorithm_and_preset():
     assert (rl2.learning_starts, rl2.exploration_steps, rl2.target_update_interval) == (4000, 60_000, 1000)
     paper = make_model("rl2dqn", "MetaBandit-v0", RunConfig(), seed=0)
     assert (paper.learning_starts, paper.exploration_steps) == (16_000, 500_000)
+    from sb3_dream import IMPORT, VariBAD
+
+    for algo, cls, field in [("import_dqn", IMPORT, "import_kwargs"), ("varibad", VariBAD, "varibad_kwargs")]:
+        model = make_model(algo, "MetaBandit-v0", RunConfig(preset="fast", **{field: (("buffer_size", 50),)}), seed=0)
+        assert type(model) is cls and model.buffer_size == 50
+        assert (model.learning_starts, model.exploration_steps, model.target_update_interval) == (4000, 60_000, 1000)
     assert plan_runs(["dream", "rl2dqn"], [EnvSpec("A-v0"), EnvSpec("B-v0")], [0, 1])[:3] == [
         Run("dream", EnvSpec("A-v0"), 0), Run("dream", EnvSpec("A-v0"), 1), Run("rl2dqn", EnvSpec("A-v0"), 0)
     ]  # fmt: skip
@@ -250,13 +256,14 @@ def test_runner_turns_parallel_updates_off_when_runs_share_the_cores(tmp_path, c
     assert ("parallel_updates" in config.settings("dream")["algo_kwargs"]) == (given is not None)
 
 
-@pytest.mark.parametrize("algo", ["dream", "rl2dqn"])
+@pytest.mark.parametrize("algo", ["dream", "rl2dqn", "import_dqn", "e_varibad"])
 def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch, algo):
     out = tmp_path / "results"
+    small_recurrent = (("buffer_size", 50), ("learning_starts", 50))
     config = RunConfig(
         steps=400, eval_freq=100, eval_trials=2, checkpoint_freq=200,
         dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
-        rl2dqn_kwargs=(("buffer_size", 50), ("learning_starts", 50)),
+        rl2dqn_kwargs=small_recurrent, import_kwargs=small_recurrent, varibad_kwargs=small_recurrent,
     )  # fmt: skip
     run = Run(algo, EnvSpec.parse("MetaBus-v0:variant=map"), 0)
     from sb3_dream.evaluation import MetaEvalCallback

@@ -18,8 +18,10 @@ algorithm trained and evaluated with ``reward_free_exploration=False``, named ``
 (``e_rl2dqn`` is E-RL²), sharing the algorithm's class, presets and overrides, and drawn dashed in
 its algorithm's colour. Registering one is one line, once its algorithm is registered::
 
-    register_rewarded_exploration_variant("import_dqn")  # e_import_dqn
-    register_rewarded_exploration_variant("varibad")  # e_varibad
+    register_rewarded_exploration_variant("rl2dqn")  # e_rl2dqn
+
+Registered here: ``dream``, ``dream_no_bottleneck``, ``rl2dqn``, ``import_dqn`` (IMPORT) and
+``varibad`` (VARIBAD), and ``e_rl2dqn``, ``e_import_dqn``, ``e_varibad``.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import json
 import pathlib
 from typing import TYPE_CHECKING, Any, Callable, Dict, Mapping, Optional, Tuple
 
-from sb3_dream.presets import PRESETS, RL2DQN_PRESETS, Preset
+from sb3_dream.presets import IMPORT_PRESETS, PRESETS, RL2DQN_PRESETS, VARIBAD_PRESETS, Preset
 
 if TYPE_CHECKING:
     from sb3_dream.experiments.config import Run, RunConfig
@@ -251,7 +253,23 @@ def _rl2dqn_class() -> type:
     return RL2DQN
 
 
+def _import_class() -> type:
+    from sb3_dream.import_dqn import IMPORT
+
+    return IMPORT
+
+
+def _varibad_class() -> type:
+    from sb3_dream.varibad import VariBAD
+
+    return VariBAD
+
+
 register_algorithm(_dream_spec("dream", bottleneck=True))
 register_algorithm(_dream_spec("dream_no_bottleneck", bottleneck=False))  # the paper's ablation
 register_algorithm(AlgorithmSpec("rl2dqn", _rl2dqn_class, RL2DQN_PRESETS, "rl2dqn_kwargs"))  # the RL² baseline
 register_rewarded_exploration_variant("rl2dqn")  # e_rl2dqn: E-RL², the paper's dashed RL² line
+register_algorithm(AlgorithmSpec("import_dqn", _import_class, IMPORT_PRESETS, "import_kwargs"))  # the IMPORT baseline
+register_rewarded_exploration_variant("import_dqn")  # e_import_dqn: the paper's dashed IMPORT line
+register_algorithm(AlgorithmSpec("varibad", _varibad_class, VARIBAD_PRESETS, "varibad_kwargs"))  # the VARIBAD baseline
+register_rewarded_exploration_variant("varibad")  # e_varibad: the paper's dashed VARIBAD line

@@ -108,6 +108,8 @@ class RunConfig:
     # Constructor overrides, sorted (key, value) pairs, one field per AlgorithmSpec.overrides.
     dream_kwargs: Tuple[Tuple[str, Any], ...] = ()
     rl2dqn_kwargs: Tuple[Tuple[str, Any], ...] = ()
+    import_kwargs: Tuple[Tuple[str, Any], ...] = ()
+    varibad_kwargs: Tuple[Tuple[str, Any], ...] = ()
     init_from: str = ""
 
     def __post_init__(self) -> None:
