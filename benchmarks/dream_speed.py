@@ -20,6 +20,13 @@ within an hour): one model per variant, all in this process, timed in interleave
     python benchmarks/dream_speed.py --compare-updates 5 --variants parallel parallel+loop-adam
     python benchmarks/dream_speed.py --parts --variants default   # each part of the update, timed alone,
                                                                   # with its FLOPs and its GFLOP/s
+
+Image envs: each network's CNN embeds each distinct frame of a batch once (the default);
+``every-frame`` (a variant, or ``--every-frame``) embeds every position's frame, as before.
+``--parts`` also counts the frames each CNN pass takes.
+
+    python benchmarks/dream_speed.py --env SignNav3D-v0 --warmup 300 --compare-updates 5 --updates 5 \
+        --variants default every-frame
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_dream import DREAM
+from sb3_dream.common.embedders import ImageEmbedder
 from sb3_dream.dream import updates
 
 
@@ -64,10 +72,12 @@ def measure(
     seed: int,
     compile_networks: bool = False,
     profile_updates: int = 0,
+    every_frame: bool = False,
     **kwargs,
 ) -> dict:
     env = make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
     model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+    set_distinct_frames(model, not every_frame)
     if compile_networks:  # every network and its target; trajectory lengths vary, hence dynamic shapes
         for name in NETWORKS + tuple(f"{n}_target" for n in NETWORKS):
             network = getattr(model.policy, name)
@@ -122,7 +132,25 @@ VARIANTS = {
     "recurrent-execution": {"execution_sampling": "episodes", "policy_kwargs": {"execution_recurrent": True}},
     # image envs (SignNav3D-v0): every CNN sees the frames average-pooled 2x2
     "downsample2": {"policy_kwargs": {"image_downsample": 2}},
+    # image envs: every position's frame through the CNNs (before distinct frames; not a DREAM kwarg)
+    "every-frame": {},
 }
+BUFFER_VARIANTS = {"every-frame": {"distinct_frames": False}}  # set on the replay buffers after construction
+
+
+def set_distinct_frames(model: DREAM, on: bool) -> None:
+    """Whether the sampled batches carry each distinct image frame once (DREAM's default) or not."""
+    model.replay_buffer.exploration.distinct_frames = on
+    model.replay_buffer.execution.distinct_frames = on
+
+
+def make_variant(name: str, env, seed: int) -> DREAM:
+    """A DREAM model of a variant (or several joined by "+"), learning from the first trials."""
+    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **variant_kwargs(name))
+    for part in name.split("+"):
+        if BUFFER_VARIANTS.get(part, {}).get("distinct_frames") is False:
+            set_distinct_frames(model, False)
+    return model
 
 
 def variant_kwargs(name: str) -> dict:
@@ -144,8 +172,7 @@ def compare_updates(
     models = {}
     for name in variants:
         env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
-        kwargs = variant_kwargs(name)
-        model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+        model = make_variant(name, env, seed)
         model.learn(warmup)  # both agents update from here on
         models[name] = model
     times: dict = defaultdict(list)
@@ -198,9 +225,10 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
     from torch.utils.flop_counter import FlopCounterMode
 
     env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
-    kwargs = {**variant_kwargs(variant), "parallel_updates": False}
-    model = DREAM(env, seed=seed, exploration_learning_starts=10, execution_learning_starts=10, **kwargs)
+    model = make_variant(variant, env, seed)
+    model.parallel_updates = False  # the parts one after the other, in this thread
     model.learn(warmup)
+    frames = count_cnn_frames(model)  # image envs: the frames each CNN pass takes
     model.policy.set_training_mode(True)
     buffers, own = model.replay_buffer, model.execution_target_z == "own"
     times: dict = defaultdict(list)
@@ -243,6 +271,23 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
         label = f"{side} thread, in all"
         print(f"{label:>32}{side_ms:>8.2f}{side_gflop:>8.3f}{side_gflop / side_ms * 1e3:>9.1f}")
     print(f"a 512 x 512 matrix product on this core: {matmul_gflops():.1f} GFLOP/s")
+    if frames:
+        print(f"CNN passes per update (network, with gradient?): frames per pass, mean of {n_updates} updates")
+        for (name, grad), rows in frames.items():
+            print(f"{name:>22} {'grad' if grad else 'no grad':>8}: {sum(rows) / n_updates:7.1f}")
+        print(f"{'in all':>31}: {sum(sum(rows) for rows in frames.values()) / n_updates:7.1f}")
+
+
+def count_cnn_frames(model: DREAM) -> dict:
+    """Hooks that record, for each network with a CNN, the frames of each pass, by gradient mode."""
+    frames: dict = defaultdict(list)
+    for name in NETWORKS + tuple(f"{n}_target" for n in NETWORKS):
+        embed = getattr(getattr(model.policy, name), "state_embed", None)
+        if isinstance(embed, ImageEmbedder):
+            embed.cnn.register_forward_hook(
+                lambda module, inputs, output, name=name: frames[name, th.is_grad_enabled()].append(len(inputs[0]))
+            )
+    return frames
 
 
 def main() -> None:
@@ -276,6 +321,9 @@ def main() -> None:
         "--image-downsample", type=int, default=1, help="policy_kwargs image_downsample (image envs; paper: 1)"
     )
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
+    parser.add_argument(
+        "--every-frame", action="store_true", help="image envs: embed every position's frame (not each distinct one once)"
+    )
     parser.add_argument(
         "--compare-updates", type=int, default=0, metavar="ROUNDS", help="time updates of --variants instead"
     )
@@ -311,7 +359,7 @@ def main() -> None:
         f"DREAM on {args.env} {env_kwargs or ''} train_freq={args.train_freq} torch threads={args.threads[0]}"
         f" parallel_updates={parallel_updates!r} compile={args.compile}"
         f" execution_target_z={args.execution_target_z} fused Adam={not args.loop_adam} device={args.device}"
-        f" image_downsample={args.image_downsample}"
+        f" image_downsample={args.image_downsample} distinct frames={not args.every_frame}"
     )
     policy_kwargs = {"optimizer_kwargs": {"fused": not args.loop_adam}, "image_downsample": args.image_downsample}
     print(f"{'n_envs':>6}{'env steps/s':>13}{'acting':>9}{'env step':>10}{'updates':>9}{'other':>8}")
@@ -320,7 +368,7 @@ def main() -> None:
             args.env, env_kwargs, n, args.steps, args.warmup, args.seed,
             compile_networks=args.compile, train_freq=args.train_freq, parallel_updates=parallel_updates,
             execution_target_z=args.execution_target_z, profile_updates=args.profile, policy_kwargs=policy_kwargs,
-            device=args.device,
+            device=args.device, every_frame=args.every_frame,
         )  # fmt: skip
         other = 1 - r["act"] - r["env"] - r["update"]
         print(f"{n:>6}{r['sps']:>13.0f}{r['act']:>9.0%}{r['env']:>10.0%}{r['update']:>9.0%}{other:>8.0%}")
