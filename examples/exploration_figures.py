@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import csv
 import pathlib
-import sys
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import gymnasium as gym
@@ -52,16 +51,7 @@ from sb3_dream.code_figures import CODE_COLUMNS, EMBEDDINGS, code_distances, cod
 from sb3_dream.common.files import atomic_target
 from sb3_dream.evaluation import as_trial_agent
 from sb3_dream.experiments import parse_kwargs
-
-
-def load_model(path: str) -> Any:
-    """A saved DREAM or RL2DQN model, whichever the file holds (``examples/meta_test.py``'s reader)."""
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
-    try:
-        from meta_test import load_model as read
-    finally:
-        sys.path.pop(0)
-    return read(path)
+from sb3_dream.loading import load_model
 
 
 def parse_model_args(values: Sequence[str]) -> List[Tuple[str, str]]:

@@ -53,7 +53,7 @@ instead: what the model's reward would pay for steps its own explorer does not t
 env names its actions (MetaBus, MetaCook, SignNav3D): e.g. a greedy exploration policy stuck
 repeating a no-op from the start, which every trial begins the same way.
 
-The model's algorithm (DREAM or RL2DQN) is read from the saved file. Several ``--model`` files
+The model's algorithm (DREAM, RL2DQN, IMPORT or VariBAD) is read from the saved file. Several ``--model`` files
 (e.g. the runner's ``--snapshot-freq`` snapshots of one run) are meta-tested on the same trials,
 in the order given, with the optimal and the random agent once.
 """
@@ -62,9 +62,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import os
-import zipfile
 from typing import Any
 
 import gymnasium as gym
@@ -76,24 +74,15 @@ from sb3_dream.experiments import parse_kwargs
 
 
 def load_model(path: str, device: str = "cpu") -> Any:
-    """Load a saved DREAM or RL2DQN model, whichever the file holds."""
-    with zipfile.ZipFile(path) as archive:
-        data = json.loads(archive.read("data"))
-    module = data.get("policy_class", {}).get("__module__", "")
-    if module.startswith("sb3_dream.dream"):
-        from sb3_dream import DREAM
+    """Load a saved DREAM, RL2DQN, IMPORT or VariBAD model, whichever the file holds."""
+    from sb3_dream.loading import load_model as load
 
-        return DREAM.load(path, device=device)
-    if module.startswith("sb3_dream.rl2dqn"):
-        from sb3_dream.rl2dqn import RL2DQN
-
-        return RL2DQN.load(path, device=device)
-    raise ValueError(f"model={path!r} holds neither a DREAM nor an RL2DQN model (policy from {module or 'unknown'})")
+    return load(path, device=device)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", required=True, nargs="+", help="saved DREAM or RL2DQN models (.zip)")
+    parser.add_argument("--model", required=True, nargs="+", help="saved DREAM, RL2DQN, IMPORT or VariBAD models (.zip)")
     parser.add_argument("--env", default="MetaBus-v0")
     parser.add_argument(
         "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map"

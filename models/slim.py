@@ -1,4 +1,4 @@
-"""Rewrite a saved DREAM or RL2DQN model without its optimizers' moment estimates.
+"""Rewrite a saved model (DREAM, RL2DQN, IMPORT or VariBAD) without its optimizers' moment estimates.
 
     python models/slim.py dream_map.zip models/dream_metabus_map.zip
 
@@ -12,31 +12,18 @@ A saved model never holds a replay buffer (that is ``save_replay_buffer``).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import zipfile
 from functools import reduce
 from typing import Any
 
 import torch as th
 
-
-def load_model(path: str) -> Any:
-    """Load a saved DREAM or RL2DQN model, whichever the file holds."""
-    with zipfile.ZipFile(path) as archive:
-        module = json.loads(archive.read("data")).get("policy_class", {}).get("__module__", "")
-    if module.startswith("sb3_dream.dream"):
-        from sb3_dream import DREAM
-
-        return DREAM.load(path, device="cpu")
-    from sb3_dream import RL2DQN
-
-    return RL2DQN.load(path, device="cpu")
+from sb3_dream.loading import load_model
 
 
 def slim(source: str, target: str) -> Any:
     """Load ``source``, empty its optimizers' states, save it to ``target``; return the model."""
-    model = load_model(source)
+    model = load_model(source, device="cpu")
     names, _ = model._get_torch_save_params()
     for name in names:
         obj = reduce(getattr, name.split("."), model)

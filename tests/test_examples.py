@@ -158,7 +158,7 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     assert type(meta_test.load_model(str(model))).__name__ == "DREAM"
     with zipfile.ZipFile(tmp_path / "dqn.zip", "w") as archive:
         archive.writestr("data", '{"policy_class": {"__module__": "stable_baselines3.dqn.policies"}}')
-    with pytest.raises(ValueError, match="neither a DREAM nor an RL2DQN model"):
+    with pytest.raises(ValueError, match="holds none of DREAM, RL2DQN, IMPORT, VariBAD"):
         meta_test.load_model(str(tmp_path / "dqn.zip"))
 
 
