@@ -6,9 +6,9 @@
 Every 10K env steps it prints the held-out meta-test return (explore one episode reward-free,
 then execute an instruction with what the exploration found): the optimal return is 0.8, an
 agent that walks to the goal without using the buses gets 0.3, and a random one about -1.9.
-The settings are the `fast` preset (learning starts after 100 trials, not the paper's 8000)
-with a wider, recurrent execution Q-network learning from whole execution episodes; the README
-says what each changes.
+The settings are the `laptop` preset (`sb3_dream.PRESETS["laptop"]`): the `fast` schedules
+(learning starts after 100 trials, not the paper's 8000) with a wider, recurrent execution
+Q-network learning from whole execution episodes; the README says what each changes.
 
 What it prints at each step, and how long it takes: the README's Quickstart.
 """
@@ -31,15 +31,9 @@ th.set_num_threads(1)  # the networks are small: one thread is fastest
 
 env_kwargs = {"variant": "map"}
 env = make_vec_env("MetaBus-v0", n_envs=4, seed=args.seed, env_kwargs=env_kwargs)
-model = DREAM(
-    "DreamPolicy",
-    env,
-    **PRESETS["fast"],
-    policy_kwargs=dict(execution_hidden_sizes=(128, 128), execution_recurrent=True),
-    execution_sampling="episodes",  # a recurrent execution Q-network learns from whole episodes
-    seed=args.seed,
-    verbose=1,
-)
+# The laptop preset: the fast schedules with a wider, recurrent execution Q-network learning from
+# whole execution episodes (sb3_dream.presets says what each setting changes).
+model = DREAM("DreamPolicy", env, **PRESETS["laptop"], seed=args.seed, verbose=1)
 held_out = MetaEvalCallback("MetaBus-v0", eval_freq=10_000, split="test", env_kwargs=env_kwargs, verbose=1)
 model.learn(total_timesteps=args.steps, callback=held_out, log_interval=1000, progress_bar=True)
 if args.save:

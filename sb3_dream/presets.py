@@ -23,6 +23,18 @@ RL2DQN's ``fast`` makes the same schedule changes in its own terms: learning sta
 hyperparameters in the paper (Table 1) and its ``fast`` schedules here.
 
 Compared side by side by ``benchmarks/learning_curves.py --preset paper|fast`` (see docs/results/metabus.md).
+
+``laptop`` is ``fast`` plus the options that shortened the wall-clock to a solved MetaBus map on a
+2-core CPU (docs/speed.md, "Time to solve"; the Quickstart's settings):
+
+* ``policy_kwargs=dict(execution_hidden_sizes=(128, 128), execution_recurrent=True)``: a wider
+  execution body (the paper's one layer of 64 plateaus below the optimum on the map) with an LSTM
+  over each execution episode, as in the authors' final code;
+* ``execution_sampling="episodes"``: an execution update learns from 32 whole execution episodes
+  (what the recurrent network needs) instead of Algorithm 1's 32 transitions.
+
+It is a DREAM preset only (the baselines have none), and its ``policy_kwargs`` is a dict: to change
+another policy argument, merge it, ``{**PRESETS["laptop"]["policy_kwargs"], "z_dim": 32}``.
 """
 
 from typing import Any, Dict
@@ -37,6 +49,11 @@ PRESETS: Dict[str, Preset] = {
         "eps_decay_steps": 30_000,
         "target_update_interval": 1000,
     },
+}
+PRESETS["laptop"] = {
+    **PRESETS["fast"],
+    "policy_kwargs": {"execution_hidden_sizes": (128, 128), "execution_recurrent": True},
+    "execution_sampling": "episodes",
 }
 
 RL2DQN_PRESETS: Dict[str, Preset] = {
