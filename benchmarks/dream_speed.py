@@ -26,7 +26,7 @@ Image envs: each network's CNN embeds each distinct frame of a batch once (the d
 ``--parts`` also counts the frames each CNN pass takes.
 
     python benchmarks/dream_speed.py --env SignNav3D-v0 --warmup 300 --compare-updates 5 --updates 5 \
-        --variants default every-frame
+        --variants default every-frame [--full-explorations]   # B_exp: walks of all 20 steps
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ import statistics
 import time
 from collections import defaultdict
 
+import numpy as np
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -85,7 +86,7 @@ def measure(
     model.learn(warmup)  # fill the buffers (and compile) so that both agents update from here on
     totals: dict = defaultdict(float)
     timed(model.env, "step", totals, "env", model.device)
-    timed(model, "_act", totals, "act", model.device)
+    timed(model, "_sample_action", totals, "act", model.device)  # the networks choosing actions
     timed(model, "train", totals, "update", model.device)
     start = time.perf_counter()
     model.learn(steps, reset_num_timesteps=False)
@@ -164,8 +165,40 @@ def variant_kwargs(name: str) -> dict:
     return kwargs
 
 
+def fill_full_explorations(model: DREAM, env_id: str, env_kwargs: dict, seed: int) -> None:
+    """Replace every exploration trajectory in B_exp by a random walk of the full horizon that never
+    takes the end-episode action: the batches of a run whose explorations take every step (the
+    warm-up's random explorations end after a few steps, so its batches are mostly padding).
+    The execution transitions keep pointing at their slots, so their trajectories are such walks too."""
+    import gymnasium as gym
+
+    from sb3_dream.dream.acting import model_states
+
+    trial_env = gym.make(env_id, **env_kwargs).unwrapped
+    trial_env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    buffer, space = model.replay_buffer.exploration, model.observation_space["obs"]
+    moves = [a for a in range(trial_env.n_actions) if a != trial_env.end_episode_action]
+    for slot in range(len(buffer)):
+        trial_env._set_problem(int(rng.integers(trial_env.n_problems)))
+        actions = rng.choice(moves, size=buffer.max_length)
+        frames = [trial_env._inner_reset()] + [trial_env._inner_step(int(a))[0] for a in actions]
+        buffer.states[slot] = model_states(np.stack(frames), space)
+        buffer.actions[slot], buffer.lengths[slot] = actions, buffer.max_length
+        buffer.prev_actions[slot] = np.concatenate([[0], actions + 1])  # 0: none, a + 1: action a
+    trial_env.close()
+
+
 def compare_updates(
-    env_id: str, env_kwargs: dict, variants: list, threads: list, rounds: int, n_updates: int, warmup: int, seed: int
+    env_id: str,
+    env_kwargs: dict,
+    variants: list,
+    threads: list,
+    rounds: int,
+    n_updates: int,
+    warmup: int,
+    seed: int,
+    full_explorations: bool = False,
 ) -> None:
     """Milliseconds per update (one exploration and one execution update, batch 32) of each variant
     at each torch thread count: ``rounds`` interleaved rounds of ``n_updates`` updates per model."""
@@ -174,6 +207,8 @@ def compare_updates(
         env = make_vec_env(env_id, n_envs=1, seed=seed, env_kwargs=env_kwargs)
         model = make_variant(name, env, seed)
         model.learn(warmup)  # both agents update from here on
+        if full_explorations:
+            fill_full_explorations(model, env_id, env_kwargs, seed)
         models[name] = model
     times: dict = defaultdict(list)
     for _ in range(rounds):
@@ -322,7 +357,9 @@ def main() -> None:
     )
     parser.add_argument("--profile", type=int, default=0, metavar="N", help="then profile N updates")
     parser.add_argument(
-        "--every-frame", action="store_true", help="image envs: embed every position's frame (not each distinct one once)"
+        "--every-frame",
+        action="store_true",
+        help="image envs: embed every position's frame (not each distinct one once)",
     )
     parser.add_argument(
         "--compare-updates", type=int, default=0, metavar="ROUNDS", help="time updates of --variants instead"
@@ -334,6 +371,11 @@ def main() -> None:
         help=f"for --compare-updates: {', '.join(VARIANTS)}, or several joined by '+' (parallel+fused-adam)",
     )
     parser.add_argument("--updates", type=int, default=100, help="updates per round of --compare-updates")
+    parser.add_argument(
+        "--full-explorations",
+        action="store_true",
+        help="for --compare-updates: after the warm-up, B_exp holds random walks of the full exploration horizon",
+    )
     parser.add_argument(
         "--parts", action="store_true", help="time each part of --updates updates (first of --variants), one thread"
     )
@@ -348,7 +390,7 @@ def main() -> None:
     if args.compare_updates:
         compare_updates(
             args.env, env_kwargs, args.variants, args.threads, args.compare_updates, args.updates, args.warmup,
-            args.seed,
+            args.seed, full_explorations=args.full_explorations,
         )  # fmt: skip
         return
     if len(args.threads) > 1:

@@ -138,7 +138,8 @@ def _close(a: th.Tensor, b: th.Tensor, rtol: float = 1e-4) -> bool:
 def test_distinct_frame_updates_equal_embedding_every_frame(kwargs):
     model = _model(**kwargs)
     policy = model.policy
-    saved = copy.deepcopy((policy.state_dict(), policy.optimizer.state_dict(), policy.exploration_optimizer.state_dict()))
+    optimizers = (policy.optimizer, policy.exploration_optimizer)
+    saved = copy.deepcopy((policy.state_dict(), *(optimizer.state_dict() for optimizer in optimizers)))
 
     def restore() -> None:  # copies: the optimizers keep the loaded state tensors and step them in place
         weights, execution, exploration = copy.deepcopy(saved)
