@@ -210,6 +210,10 @@ class ImageEmbedder(nn.Module):
     The convolutions run on channels-last tensors: the same arithmetic, and on a CPU (oneDNN) faster
     than channel-first for these frames, forward and backward (``benchmarks/image_embedder_speed.py``).
 
+    Given a :class:`DistinctFrames` instead of a tensor, it runs the CNN over each distinct frame
+    once and indexes the result (DREAM's update batches on image states come so); :meth:`embed_pair`
+    embeds a batch's s and s' with the CNN once per distinct frame of both.
+
     ``downsample`` > 1 (an option; the paper's CNN sees the full frame) average-pools each frame by
     that factor before the convolutions (2: 80 x 60 -> 40 x 30), which cuts the convolutions'
     arithmetic about 4x; colours, such as the sign's, survive the averaging.
