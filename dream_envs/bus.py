@@ -382,10 +382,10 @@ class _ExplorationRecorder(TrialRecorder):
                 self.rides.append((int(obs["obs"][0]), int(obs["obs"][1])))
 
     def _note_map(self, state: np.ndarray) -> None:
-        self.read_map |= _shows_map(state)
+        self.read_map |= shows_map(state)
 
     def trial_row(self, result: Dict[str, Any]) -> Tuple[Any, ...]:
-        stop_of = _stop_of(self.env.routes(int(result["problem_id"])))
+        stop_of = bus_stop_of(self.env.routes(int(result["problem_id"])))
         seen = {stop_of[cell] for cell in self.rides}
         missed_return = STEP_REWARD * self.env.horizon  # every step's cost, no goal reward
         return (
@@ -398,13 +398,29 @@ class _ExplorationRecorder(TrialRecorder):
         )
 
 
-def _shows_map(state: np.ndarray) -> bool:
-    """Whether an inner state shows the map (map variant: its fourth dimension, on the map)."""
+def shows_map(state: np.ndarray) -> bool:
+    """Whether the inner state ``state`` shows the map.
+
+    Only the map variant's states have a fourth dimension, set while the agent stands on the map
+    cell (it then holds the index + 1 of the problem's colored permutation); other variants never
+    show it.
+
+    :param state: one inner state ``obs`` (``[x, y, cell kind]``, plus the map entry in the map variant).
+    :return: True when the state carries the map.
+    """
     return len(state) > 3 and int(state[3]) > 0
 
 
-def _stop_of(routes: Dict[Cell, Cell]) -> Dict[Cell, Cell]:
-    """Each bus cell's route, named by its stop: riding from either end sees the same route."""
+def bus_stop_of(routes: Dict[Cell, Cell]) -> Dict[Cell, Cell]:
+    """The route each bus cell belongs to, named by the route's stop.
+
+    A route joins a stop and its destination, and riding from either end reveals the same route,
+    so both cells map to the stop: ``bus_stop_of(env.routes(problem_id))[cell]`` tells which
+    route a ride from ``cell`` saw.
+
+    :param routes: one problem's routes, ``{stop: destination}`` (:meth:`MetaBusEnv.routes`).
+    :return: ``{cell: stop}`` for every stop and destination cell.
+    """
     return {**{stop: stop for stop in routes}, **{dest: stop for stop, dest in routes.items()}}
 
 
@@ -448,7 +464,7 @@ def discovery_rewards(
     bus = unwrap(env, MetaBusEnv, "MetaBus-v0")
     found: Dict[str, List[float]] = {kind: [] for kind in DISCOVERIES}
     for (states, actions), reward, problem_id in zip(trajectories, rewards, problem_ids):
-        stop_of = _stop_of(bus.routes(int(problem_id)))
+        stop_of = bus_stop_of(bus.routes(int(problem_id)))
         ridden, map_read = set(), False
         for t, action in enumerate(actions):
             cell = (int(states[t][0]), int(states[t][1]))
@@ -456,7 +472,7 @@ def discovery_rewards(
                 stop = stop_of[cell]
                 kind = "route again" if stop in ridden else "colored route" if stop in COLORED_STOPS else "gray route"
                 ridden.add(stop)
-            elif not map_read and _shows_map(states[t + 1]):
+            elif not map_read and shows_map(states[t + 1]):
                 kind, map_read = "map", True
             else:
                 kind = "other"

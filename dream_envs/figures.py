@@ -34,8 +34,8 @@ from dream_envs.bus import (
     RIDE,
     SIZE,
     MetaBusEnv,
-    _shows_map,
-    _stop_of,
+    bus_stop_of,
+    shows_map,
 )
 from dream_envs.cook.env import MetaCookEnv
 from dream_envs.cook.kitchen import FRIDGE_POS, GRID_SIZE, POT_POS, fridge_contents, fridge_picked
@@ -132,7 +132,7 @@ def _events(
     """What each step of an exploration found, in problem ``problem_id``."""
     events: List[ExplorationEvent] = []
     if isinstance(env, MetaBusEnv):
-        stop_of = _stop_of(env.routes(problem_id))
+        stop_of = bus_stop_of(env.routes(problem_id))
         map_read = False
         for t, action in enumerate(actions):
             cell = (int(states[t][0]), int(states[t][1]))
@@ -140,7 +140,7 @@ def _events(
                 stop = stop_of[cell]
                 label = "ABCD"[COLORED_STOPS.index(stop)] if stop in COLORED_STOPS else f"g{GRAY_STOPS.index(stop) + 1}"
                 events.append(ExplorationEvent(t, "ride", label, cell))
-            if not map_read and _shows_map(states[t + 1]):
+            if not map_read and shows_map(states[t + 1]):
                 map_read = True
                 events.append(ExplorationEvent(t, "map", "map", (int(states[t + 1][0]), int(states[t + 1][1]))))
     else:

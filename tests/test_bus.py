@@ -33,8 +33,10 @@ from dream_envs.bus import (
     UP,
     BusExplorationReport,
     MetaBusEnv,
+    bus_stop_of,
     discovery_rewards,
     exploration_report,
+    shows_map,
 )
 
 VARIANTS = ("distracting", "map", "vanilla")
@@ -150,6 +152,23 @@ def test_map_reveals_the_colored_permutation_only_on_the_map_cell():
         steps = run(env, [RIGHT, RIGHT, RIGHT, DOWN, DOWN])
         assert [list(s[0]["obs"][2:]) for s in steps] == [[1, 0], [0, 0], [0, 0], [2, 1 + problem_id], [0, 0]]
         assert pos(steps[3][0]) == MAP_CELL
+
+
+def test_shows_map_only_on_the_map_cell_of_the_map_variant():
+    env = make("map")
+    obs, _ = env.reset(options={"problem_id": 13})
+    states = [obs["obs"]] + [s[0]["obs"] for s in run(env, [RIGHT, RIGHT, RIGHT, DOWN, DOWN])]
+    assert [shows_map(s) for s in states] == [False, False, False, False, True, False]
+    vanilla, _ = make("vanilla").reset(seed=0)
+    assert not shows_map(vanilla["obs"])  # three dimensions: no map entry
+
+
+def test_bus_stop_of_names_both_ends_of_each_route_by_its_stop():
+    routes = make("vanilla").routes(5)
+    stop_of = bus_stop_of(routes)
+    assert set(stop_of) == set(routes) | set(routes.values())
+    for stop, dest in routes.items():
+        assert stop_of[stop] == stop_of[dest] == stop
 
 
 def test_observation_spaces_are_fixed_per_variant():
