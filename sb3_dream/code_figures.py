@@ -2,8 +2,9 @@
 
 :func:`dream_codes` reads a trained DREAM model's codes: f(T) of every problem of the env (the
 encoder's mean, no noise) and, over greedy meta-test trials, g(tau^exp) of each exploration and
-g(tau_:t) of each of its prefixes (what the decoder makes of the trajectory so far). It reads each
-trial's problem, so it is a diagnostic, like :func:`sb3_dream.dream.diagnose`.
+g(tau_:t) of each of its prefixes (what the decoder makes of the trajectory so far,
+:meth:`sb3_dream.DREAM.decode_prefixes`). It reads each trial's problem, so it is a diagnostic,
+like :func:`sb3_dream.dream.diagnose`.
 
 :func:`embed_2d` maps the codes to the plane, all of them together: with t-SNE where scikit-learn is
 installed (the paper's choice), else with PCA (numpy). :func:`code_figure` draws them, coloured by
@@ -20,11 +21,10 @@ from __future__ import annotations
 
 import pathlib
 from dataclasses import dataclass
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Tuple, Union
 
 import gymnasium as gym
 import numpy as np
-import torch as th
 
 from dream_envs.checks import check_positive_int
 from dream_envs.figures import held_out_problems
@@ -93,25 +93,9 @@ def dream_codes(
         features=features,
         trial_problem_ids=np.asarray(ids, dtype=np.int64),
         g=agent.codes(),
-        prefixes=_prefix_codes(model, trajectories),
+        prefixes=model.decode_prefixes(trajectories),
         family=type(trial_env).__name__,
     )
-
-
-@th.no_grad()
-def _prefix_codes(model: Any, trajectories: Sequence[Tuple[np.ndarray, np.ndarray]]) -> List[np.ndarray]:
-    """g(tau_:t) for every prefix of every trajectory: one decoder pass over the padded batch (a
-    prefix never reads the padding after it)."""
-    lengths = [len(actions) for _, actions in trajectories]
-    longest = max(lengths)
-    first_states = trajectories[0][0]
-    states = np.zeros((len(trajectories), longest + 1, *first_states.shape[1:]), first_states.dtype)
-    actions = np.zeros((len(trajectories), longest), trajectories[0][1].dtype)
-    for k, (s, a) in enumerate(trajectories):
-        states[k, : len(s)], actions[k, : len(a)] = s, a
-    tensor = lambda a: th.as_tensor(a, device=model.device)  # noqa: E731
-    g = model.policy.decoder(tensor(states), tensor(actions)).cpu().numpy()  # [n, T + 1, z]
-    return [g[k, : n + 1] for k, n in enumerate(lengths)]
 
 
 def code_distances(codes: DreamCodes) -> Dict[str, float]:

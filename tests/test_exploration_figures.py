@@ -173,6 +173,40 @@ def test_dream_codes_of_the_shipped_map_model_land_on_their_problems():
         code_figures.dream_codes(object(), "MetaBus-v0", 1)
 
 
+def test_decode_prefixes_ends_with_dreams_decode_of_the_whole_trajectory():
+    from sb3_dream import DREAM
+    from sb3_dream.dream.acting import decode
+
+    model = DREAM.load(DREAM_MAP, device="cpu")
+    env = gym.make("MetaBus-v0", variant="map")
+    rng = np.random.default_rng(0)
+    trajectories = []
+    for length in (5, 0, 12):  # unequal lengths, one with nothing explored
+        obs, _ = env.reset(seed=length)
+        states, actions = [obs["obs"]], rng.integers(0, env.action_space.n, size=length)
+        for action in actions:
+            obs, *_ = env.step(int(action))
+            states.append(obs["obs"])
+        trajectories.append((np.stack(states), actions))
+    prefixes = model.decode_prefixes(trajectories)
+    assert [p.shape for p in prefixes] == [(n + 1, model.policy.z_dim) for n in (5, 0, 12)]
+    # DREAM's own decode at meta-test, g(tau^exp), from the same trajectories in its trial state
+    state = model.new_trial_state(len(trajectories))
+    for k, (states, actions) in enumerate(trajectories):
+        state.states[k, : len(states)], state.actions[k, : len(actions)] = states, actions
+    lengths = np.array([len(a) for _, a in trajectories])
+    whole = decode(model.policy, state, np.arange(len(trajectories)), lengths)
+    np.testing.assert_allclose(np.stack([p[-1] for p in prefixes]), whole, atol=1e-6)
+    # and every prefix is the decode of that many transitions
+    for t in range(13):
+        alone = decode(model.policy, state, np.array([2]), np.array([t]))[0]
+        np.testing.assert_allclose(prefixes[2][t], alone, atol=1e-6)
+    with pytest.raises(ValueError, match="trajectory 0: states must be"):
+        model.decode_prefixes([(trajectories[0][0], trajectories[0][1][:-1])])
+    with pytest.raises(ValueError, match="trajectories is empty"):
+        model.decode_prefixes([])
+
+
 def read_csv(path: pathlib.Path):
     with open(path, newline="") as handle:
         return list(csv.reader(handle))

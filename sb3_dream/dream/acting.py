@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import warnings
-from typing import TYPE_CHECKING, Any, Dict, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch as th
@@ -234,6 +234,41 @@ class DreamActing:
         """The encoder's z of problems ``problem_ids``: sampled from F(z | T) if ``noisy``, else f(T)."""
         f = self.policy.encoder(th.as_tensor(self.problem_table[problem_ids], device=self.device))
         return (self.sample_encoder_z(f, generator) if noisy else f).cpu().numpy()
+
+    @th.no_grad()
+    def decode_prefixes(self, trajectories: Sequence[Tuple[np.ndarray, np.ndarray]]) -> List[np.ndarray]:
+        """The decoder's g(tau_:t) for every prefix of each exploration trajectory: what DREAM makes
+        of an exploration after each of its steps.
+
+        :param trajectories: one ``(states, actions)`` pair per exploration, ``states``
+            ``[T_k + 1, ...]`` (s_0 .. s_T, image states channel-first or channel-last) and
+            ``actions`` ``[T_k]``; the lengths ``T_k`` may differ (``T_k = 0``: nothing explored).
+        :return: one array ``[T_k + 1, z_dim]`` per trajectory, in order: row t is g of the first t
+            transitions, row 0 g of the empty trajectory and the last row g(tau^exp), the z the
+            execution policy acts on at meta-test.
+        """
+        if len(trajectories) == 0:
+            raise ValueError("trajectories is empty: pass at least one (states, actions) pair")
+        space = self.observation_space["obs"]
+        pairs = [(model_states(states, space), np.asarray(actions)) for states, actions in trajectories]
+        for k, (states, actions) in enumerate(pairs):
+            if actions.ndim != 1 or len(states) != len(actions) + 1 or states.shape[1:] != space.shape:
+                raise ValueError(
+                    f"trajectory {k}: states must be [T + 1, *{space.shape}] and actions [T], "
+                    f"got {states.shape} and {actions.shape}"
+                )
+        lengths = [len(actions) for _, actions in pairs]
+        # One decoder pass over the padded batch: prefix t reads only the first t transitions, so
+        # the padding after a shorter trajectory never reaches its prefixes. At least one
+        # transition is padded in, as the LSTM takes no empty sequence.
+        width = max(1, max(lengths))
+        states = np.zeros((len(pairs), width + 1, *space.shape), dtype=pairs[0][0].dtype)
+        actions = np.zeros((len(pairs), width), dtype=np.int64)
+        for k, (s, a) in enumerate(pairs):
+            states[k, : len(s)], actions[k, : len(a)] = s, a
+        tensor = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
+        g = self.policy.decoder(tensor(states), tensor(actions)).cpu().numpy()  # [n, width + 1, z]
+        return [g[k, : n + 1] for k, n in enumerate(lengths)]
 
     def end_exploration(
         self, state: TrialState, idx: np.ndarray, final_obs: np.ndarray, problem_ids: Optional[np.ndarray] = None
