@@ -6,11 +6,13 @@
   (paper: 1 -> 0.01 over 500k steps for RL², 250k per policy for DREAM).
 * LSTM state helpers: zero states, resets at trial starts, a fused ``[B, T]`` unroll with an
   R2D2-style burn-in whose gradient is cut (:func:`unroll_lstm`).
-* :func:`double_dqn_targets` and :func:`masked_td_loss`: double-DQN targets over padded sequences.
+* :func:`double_dqn_targets` and :func:`masked_td_loss`: double-DQN targets over padded sequences;
+  :func:`n_step_targets`: their n-step form over the same padded sequences.
 """
 
 from __future__ import annotations
 
+import numbers
 from typing import Optional, Tuple
 
 import torch as th
@@ -115,6 +117,62 @@ def double_dqn_targets(
     best = next_q_online.argmax(dim=-1, keepdim=True)
     next_value = next_q_target.gather(-1, best).squeeze(-1)
     return rewards + gamma * (1.0 - dones) * next_value
+
+
+def n_step_targets(
+    next_q_online: th.Tensor,
+    next_q_target: th.Tensor,
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    mask: th.Tensor,
+    gamma: float,
+    n: int,
+) -> th.Tensor:
+    """n-step double-DQN targets over padded sequences (n = 1: exactly :func:`double_dqn_targets`).
+
+    Step t of a sequence is the transition (s_t, a_t, r_t, s_{t+1}). Its target sums the rewards of
+    the next m_t steps and bootstraps once, at s_{t+m_t}, with the double-DQN value:
+
+        y_t = sum_{k=0}^{m_t-1} gamma^k r_{t+k}
+              + gamma^{m_t} (1 - d_{t+m_t-1}) Q_target(s_{t+m_t}, argmax_a Q_online(s_{t+m_t}, a)),
+
+    where the window is cut short at the sequence's end: m_t = min(n, steps up to and including the
+    first terminal one, d = 1, from t, valid steps left from t). A window ending on a terminal step
+    adds no bootstrap; one ending at the last stored step without a terminal (a time limit that
+    bootstraps, an episode still being collected) bootstraps at that step's s'. Padding (``mask``
+    0) gets a target of 0, to be masked out of the loss.
+
+    :param next_q_online: ``[B, T, A]`` online Q-values at s_{t+1} of each step (pick the action).
+    :param next_q_target: ``[B, T, A]`` target-network Q-values at s_{t+1} (evaluate it).
+    :param rewards: ``[B, T]``.
+    :param dones: ``[B, T]``, 1 where s_{t+1} is terminal.
+    :param mask: ``[B, T]``, 1 on each sequence's valid steps, a prefix of it (padding after).
+    :param n: steps summed before bootstrapping, an integer >= 1.
+    :return: ``[B, T]``.
+    """
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    if n == 1:  # the one-step target, the same arithmetic bit for bit
+        return double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
+    best = next_q_online.argmax(dim=-1, keepdim=True)
+    bootstrap = next_q_target.gather(-1, best).squeeze(-1) * (1.0 - dones)  # the value of s_{t+1}, 0 if terminal
+    valid = mask.to(rewards.dtype)
+    t_max = rewards.shape[-1]
+    # Zeros after the last step: a window running past it meets invalid steps and stops there.
+    pad = lambda x: F.pad(x, (0, n))  # noqa: E731
+    r, d, m, v = pad(rewards * valid), pad(dones.to(rewards.dtype)), pad(valid), pad(bootstrap)
+    returns, tail = th.zeros_like(rewards), th.zeros_like(rewards)
+    alive = valid  # 1 where steps t .. t+k-1 are valid and non-terminal and step t+k is valid
+    for k in range(int(n)):
+        returns = returns + gamma**k * alive * r[..., k : k + t_max]
+        if k < n - 1:
+            following = alive * (1.0 - d[..., k : k + t_max]) * m[..., k + 1 : k + 1 + t_max]
+        else:
+            following = th.zeros_like(alive)
+        ends = alive - following  # 1 where the window's last step is t+k: bootstrap at s_{t+k+1}
+        tail = tail + gamma ** (k + 1) * ends * v[..., k : k + t_max]
+        alive = following
+    return returns + tail
 
 
 def masked_td_loss(q: th.Tensor, targets: th.Tensor, mask: th.Tensor, kind: str = "mse") -> th.Tensor:

@@ -129,6 +129,17 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         Algorithm 1), ``batch_size`` transitions drawn uniformly from B_exe; ``"episodes"`` (the
         authors' code), every transition of ``batch_size`` execution episodes. The decoder, the
         bottleneck and the decoder loss read ``batch_size`` trials either way.
+    :param execution_n_step: n of the execution Q's TD targets (Equation 2's RL term): 1 (default)
+        is the paper's one-step double-DQN target r + gamma Q'(s'); n > 1 sums the next n rewards of
+        the execution episode and bootstraps once, gamma^n Q'(s_{t+n}), cut short at the episode's
+        end (no bootstrap after a terminal step; with ``bootstrap_at_horizon`` the horizon's last
+        s' bootstraps). A reward reaches the values n steps back per update instead of one, for
+        faster learning from few samples, at the price of bias from the off-policy (epsilon-greedy,
+        older) actions inside the window. Needs ``execution_sampling="episodes"``, whose batches
+        hold the following transitions (:func:`sb3_dream.common.recurrent.n_step_targets`).
+    :param exploration_n_step: the same for the exploration Q's targets over its trajectories,
+        whose rewards are Equation 5's information gains: 1 (default) is the paper's; n > 1 sums the
+        next n gains (the exploration episode's end is terminal).
     :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
         networks: ``execution_hidden_sizes``, ``execution_time_input``, ``exploration_time_input``,
         ``execution_instruction_mlp``, ``execution_recurrent`` (needs
@@ -181,6 +192,8 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         parallel_updates: Union[bool, str] = "auto",
         execution_target_z: str = "own",
         execution_sampling: str = "transitions",
+        execution_n_step: int = 1,
+        exploration_n_step: int = 1,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -204,6 +217,8 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
             ("execution_learning_starts", execution_learning_starts, 0),
             ("eps_decay_steps", eps_decay_steps, 0),
             ("z_dim", z_dim, 1),
+            ("execution_n_step", execution_n_step, 1),
+            ("exploration_n_step", exploration_n_step, 1),
         ]:
             check_positive_int(name, value, minimum)
         for name, value in [
@@ -217,6 +232,12 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
         check_choice("execution_sampling", execution_sampling, EXECUTION_SAMPLING)
+        if execution_n_step > 1 and execution_sampling != "episodes":
+            # Algorithm 1's batch holds single transitions, not the ones after them the n-step sum reads.
+            raise ValueError(
+                f"execution_n_step={execution_n_step!r} needs execution_sampling='episodes' (n-step targets sum the "
+                f"rewards of the following transitions of each episode), got execution_sampling={execution_sampling!r}"
+            )
         if policy_kwargs and "z_dim" in policy_kwargs and policy_kwargs["z_dim"] != z_dim:
             raise ValueError(
                 f"z_dim is DREAM's argument: pass z_dim={policy_kwargs['z_dim']!r} to DREAM, not in policy_kwargs "
@@ -263,6 +284,8 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self.parallel_updates = parallel_updates
         self.execution_target_z = execution_target_z
         self.execution_sampling = execution_sampling
+        self.execution_n_step = int(execution_n_step)
+        self.exploration_n_step = int(exploration_n_step)
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
         if self.env is not None:

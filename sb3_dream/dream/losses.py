@@ -1,12 +1,14 @@
 """DREAM's objectives as pure functions of network outputs (paper, Section 4 and Appendix A).
 
 * :func:`execution_td_losses`: the execution Q's double-DQN losses (Equation 2's RL term), one for
-  z from the decoder and one for z from the encoder;
+  z from the decoder and one for z from the encoder (one-step targets, the paper's, or n-step over
+  whole episodes: :func:`execution_n_step_targets`);
 * :func:`bottleneck_loss`: the information bottleneck on f (Equation 3, with the authors'
   threshold K);
 * :func:`decoder_loss`: the decoder's regression of every prefix g(tau_:t) toward f(T) (Equation 4);
 * :func:`exploration_rewards`: the information-gain reward of each exploration step (Equation 5);
-* :func:`exploration_td_loss`: the recurrent exploration Q's double-DQN loss on those rewards.
+* :func:`exploration_td_loss`: the recurrent exploration Q's double-DQN loss on those rewards
+  (one-step targets, the paper's, or n-step).
 
 Shapes: B trajectories (or transitions), T transitions per padded trajectory, z the code's size,
 A actions.
@@ -14,12 +16,12 @@ A actions.
 
 from __future__ import annotations
 
-from typing import Tuple
+from typing import Optional, Tuple
 
 import torch as th
 from torch.nn import functional as F
 
-from sb3_dream.common.recurrent import double_dqn_targets, masked_td_loss
+from sb3_dream.common.recurrent import double_dqn_targets, masked_td_loss, n_step_targets
 
 
 def execution_td_losses(
@@ -30,6 +32,9 @@ def execution_td_losses(
     dones: th.Tensor,
     gamma: float,
     n_rows: int,
+    n_step: int = 1,
+    episodes: Optional[th.Tensor] = None,
+    steps: Optional[th.Tensor] = None,
 ) -> Tuple[th.Tensor, th.Tensor]:
     """Equation 2's two DDQN losses on one batch of execution transitions evaluated twice.
 
@@ -39,12 +44,61 @@ def execution_td_losses(
     :param next_q_target: ``[2B, A]`` the target Q at s' (evaluates it).
     :param rewards: ``[2B]``; ``dones``: ``[2B]``, 1 where s' is terminal.
     :param n_rows: B.
+    :param n_step: 1 (the paper's one-step targets) or n > 1: n-step targets
+        (:func:`execution_n_step_targets`), which need the batch's whole episodes.
+    :param episodes: ``[B]`` with ``n_step > 1``: the execution episode of each transition
+        (0 .. E-1, ``ExecutionBatch.trajectories`` of a batch of whole episodes).
+    :param steps: ``[B]`` with ``n_step > 1``: each transition's step within its episode.
     :return: the mean squared TD errors of the decoder's rows and of the encoder's rows.
     """
     with th.no_grad():
-        target = double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
+        if n_step == 1:
+            target = double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
+        else:
+            if episodes is None or steps is None:
+                raise ValueError("n-step execution targets need each transition's episode and step")
+            # The two z sources' rows are two copies of the batch's episodes: E .. 2E-1 for the second.
+            n_episodes = int(episodes.max()) + 1
+            both = th.cat([episodes, episodes + n_episodes])
+            target = execution_n_step_targets(
+                next_q_online, next_q_target, rewards, dones, both, steps.repeat(2), gamma, n_step
+            )
     td = F.mse_loss(q, target, reduction="none")
     return td[:n_rows].mean(), td[n_rows:].mean()
+
+
+def execution_n_step_targets(
+    next_q_online: th.Tensor,
+    next_q_target: th.Tensor,
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    episodes: th.Tensor,
+    steps: th.Tensor,
+    gamma: float,
+    n_step: int,
+) -> th.Tensor:
+    """n-step double-DQN targets (:func:`~sb3_dream.common.recurrent.n_step_targets`) of execution
+    transitions that come as whole episodes in any order.
+
+    Each transition j is step ``steps[j]`` of episode ``episodes[j]``; every episode's steps are
+    0 .. L_e - 1 (``execution_sampling="episodes"``). The rows are laid out as one padded
+    ``[E, L]`` sequence per episode, the targets computed there, and read back per row.
+
+    :param next_q_online: ``[N, A]``; ``next_q_target``: ``[N, A]``; ``rewards``, ``dones``: ``[N]``.
+    :return: ``[N]``.
+    """
+    n_episodes, length = int(episodes.max()) + 1, int(steps.max()) + 1
+    cell = episodes * length + steps  # each row's place in the [E, L] layout
+
+    def lay_out(values: th.Tensor) -> th.Tensor:
+        grid = values.new_zeros((n_episodes * length, *values.shape[1:]))
+        return grid.index_copy(0, cell, values).view(n_episodes, length, *values.shape[1:])
+
+    mask = lay_out(th.ones_like(rewards))
+    targets = n_step_targets(
+        lay_out(next_q_online), lay_out(next_q_target), lay_out(rewards), lay_out(dones), mask, gamma, n_step
+    )
+    return targets.reshape(-1)[cell]
 
 
 def bottleneck_loss(f: th.Tensor, threshold: float) -> th.Tensor:
@@ -87,6 +141,7 @@ def exploration_td_loss(
     rewards: th.Tensor,
     lengths: th.Tensor,
     gamma: float,
+    n_step: int = 1,
 ) -> Tuple[th.Tensor, th.Tensor, th.Tensor]:
     """The exploration Q's DDQN loss over whole padded trajectories (Algorithm 1, lines 14-16).
 
@@ -94,6 +149,8 @@ def exploration_td_loss(
     :param q_target_all: ``[B, T+1, A]`` the target Q at the same states.
     :param actions: ``[B, T]``; ``rewards``: ``[B, T]`` from :func:`exploration_rewards`.
     :param lengths: ``[B]``: the exploration episode ends after step T_b - 1 (no bootstrap there).
+    :param n_step: 1 (the paper's one-step targets) or n > 1: each target sums the next n
+        information gains before bootstrapping (:func:`~sb3_dream.common.recurrent.n_step_targets`).
     :return: the loss, Q of the taken actions ``[B, T]`` and the mask of valid steps ``[B, T]``.
     """
     t_max = actions.shape[1]
@@ -101,6 +158,7 @@ def exploration_td_loss(
     with th.no_grad():
         steps = th.arange(t_max, device=q.device)[None]
         last = (steps == (lengths[:, None] - 1)).float()
-        target = double_dqn_targets(q_all[:, 1:], q_target_all[:, 1:], rewards, last, gamma)
         valid = (steps < lengths[:, None]).float()
+        # n_step_targets with n = 1 is double_dqn_targets itself: the paper's targets, bit for bit.
+        target = n_step_targets(q_all[:, 1:], q_target_all[:, 1:], rewards, last, valid, gamma, n_step)
     return masked_td_loss(q, target, valid), q, valid

@@ -83,7 +83,16 @@ def execution_update(
         target_net = policy.execution_q_target
         next_target = target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
     loss_traj, loss_prob = losses.execution_td_losses(
-        q, next_online, next_target, exe.rewards.repeat(2), exe.dones.repeat(2), model.gamma, len(exe.actions)
+        q,
+        next_online,
+        next_target,
+        exe.rewards.repeat(2),
+        exe.dones.repeat(2),
+        model.gamma,
+        len(exe.actions),
+        n_step=model.execution_n_step,
+        episodes=exe.trajectories,  # with execution_sampling="episodes", each transition's episode
+        steps=exe.steps,
     )
     bottleneck = losses.bottleneck_loss(f, model.bottleneck_threshold) if model.bottleneck else f.new_zeros(())
     decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
@@ -118,7 +127,9 @@ def exploration_update(model: "DREAM", traj: TrajectoryBatch, g: th.Tensor, f: t
     q_all, _ = policy.exploration_q(*inputs)  # [B, T+1, A]
     with th.no_grad():
         q_target_all, _ = policy.exploration_q_target(*inputs)
-    loss, q, valid = losses.exploration_td_loss(q_all, q_target_all, traj.actions, rewards, traj.lengths, model.gamma)
+    loss, q, valid = losses.exploration_td_loss(
+        q_all, q_target_all, traj.actions, rewards, traj.lengths, model.gamma, n_step=model.exploration_n_step
+    )
     policy.exploration_optimizer.zero_grad(set_to_none=True)
     loss.backward()
     th.nn.utils.clip_grad_norm_(policy.exploration_q.parameters(), model.max_grad_norm)
