@@ -79,6 +79,56 @@ def test_paper_defaults_sizes_and_short_form():
     assert n_opt == sum(p.numel() for p in net.parameters())
 
 
+def keys_without_gradient(model, batch) -> list:
+    """The policy's state_dict keys, target networks aside, that one loss backward leaves without a
+    gradient: parameters the model saves but never trains. (A gradient may be zero where the batch
+    holds no signal, e.g. no reward yet; it is None only for what the loss never reads.)"""
+    model.policy.optimizer.zero_grad(set_to_none=True)
+    loss, _ = model._loss(batch)
+    loss.backward()
+    params = dict(model.policy.named_parameters())
+    return [
+        key
+        for key in model.policy.state_dict()
+        if not key.startswith("q_net_target.")
+        and (key not in params or params[key].grad is None)
+    ]
+
+
+def layers_built_and_dropped(monkeypatch, build) -> list:
+    """The ``nn.Linear`` layers that ``build()`` (a model) constructs but its policy does not keep
+    outside the target network (a deep copy, built without constructing layers): each drew its
+    initial weights for nothing."""
+    built = []
+    init = th.nn.Linear.__init__
+
+    def recording_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        built.append(self)
+
+    monkeypatch.setattr(th.nn.Linear, "__init__", recording_init)
+    policy = build().policy
+    target = {id(m) for m in policy.q_net_target.modules()}
+    kept = {id(m) for m in policy.modules() if id(m) not in target}
+    return [m for m in built if id(m) not in kept]
+
+
+def test_the_network_builds_only_what_its_q_values_read(monkeypatch):
+    # no Q head over the history alone (RL²'s) is built and then replaced
+    assert layers_built_and_dropped(monkeypatch, lambda: small_model(CueMemoryEnv())) == []
+    net = small_model(CueMemoryEnv()).q_net
+    assert net.head.value.in_features == net.q_hidden[0].out_features  # the head reads [e(s); e(i); z]
+
+
+def test_every_saved_parameter_but_the_targets_is_trained():
+    model = small_model(CueMemoryEnv(), learning_starts=10)
+    model.learn(40)
+    batch = model.replay_buffer._get_samples(np.arange(4))
+    # both choices of z: e(T) is trained through the Q-values of the sequences that act on it
+    batch = batch._replace(use_problem=th.tensor([True, False, True, False]))
+    assert keys_without_gradient(model, batch) == []
+
+
 def test_sb3_argument_and_bad_input_errors():
     with pytest.raises(ValueError, match="SB3's 'exploration_fraction'.*exploration_steps"):
         IMPORT("MetaBus-v0", exploration_fraction=0.1)

@@ -1,7 +1,7 @@
 """Q(s_t, i, z, a) over ``[e(s_t); e(i); z]``: the Q-network shape IMPORT and VariBAD share.
 
 In the DREAM paper's baselines (Appendix B.3) both IMPORT and VariBAD embed the history tau_:t
-exactly as RL² does (per-step embeddings -> linear 64 + ReLU -> LSTM 64, :class:`RL2QNetwork`)
+exactly as RL² does (per-step embeddings -> linear 64 + ReLU -> LSTM 64, :class:`HistoryQNetwork`)
 and read Q-values from a *separate* embedding of the current state and instruction concatenated
 with a vector z: a linear layer of 64 units with ReLU over ``[e(s_t); e(i); z]``, then a dueling
 head. They differ only in what z is (IMPORT: the problem embedding e(T) or the history e(tau_:t);
@@ -21,7 +21,7 @@ from torch import nn
 from sb3_dream.common.buffers import SequenceReplayBufferSamples
 from sb3_dream.common.embedders import TRIAL_KEYS, TrialInputEmbedder
 from sb3_dream.common.recurrent import DuelingHead
-from sb3_dream.rl2dqn.policies import RL2DQNPolicy, RL2QNetwork
+from sb3_dream.rl2dqn.policies import HistoryQNetwork, RL2DQNPolicy
 from sb3_dream.rl2dqn.rl2dqn import double_dqn_loss_from_q_values, initial_batch_states
 
 #: the keys of the current step that Q reads besides z: e(s_t) and e(i)
@@ -30,17 +30,20 @@ CURRENT_KEYS = ("obs", "instruction")
 ChooseZ = Callable[["ConditionedQNetwork", th.Tensor], th.Tensor]
 
 
-class ConditionedQNetwork(RL2QNetwork):
+class ConditionedQNetwork(HistoryQNetwork):
     """RL²'s history encoder e(tau_:t) and a dueling Q-head over ``[e(s_t); e(i); z]``.
 
-    The history encoder (``embedder``, ``fusion``, ``lstm``) is :class:`RL2QNetwork`'s; its LSTM
+    The history encoder (``embedder``, ``fusion``, ``lstm``) is :class:`HistoryQNetwork`'s; its LSTM
     output, e(tau_:t), is z by default (:meth:`forward`, :meth:`step`: what the policy acts on
     at meta-test). ``current_embedder`` embeds the step's state (64 units, 128 for images) and
     instruction (64) anew, with the paper's state/instruction embedders (32 per dimension, then
-    256 and 64); ``q_hidden`` is the linear layer of ``q_hidden_dim`` (paper: 64) with ReLU.
+    256 and 64); ``q_hidden`` is the linear layer of ``q_hidden_dim`` (paper: 64) with ReLU. No Q
+    head over the history alone (RL²'s) is built: every parameter is one the Q-values read.
 
+    :param n_actions: number of discrete actions.
+    :param dueling: dueling head (paper) or a single linear Q head.
     :param q_hidden_dim: the linear layer over ``[e(s); e(i); z]`` (paper: 64).
-    The other parameters are :class:`RL2QNetwork`'s; ``z``'s size is ``lstm_hidden_size``.
+    The other parameters are :class:`HistoryQNetwork`'s; ``z``'s size is ``lstm_hidden_size``.
     """
 
     def __init__(
@@ -55,15 +58,14 @@ class ConditionedQNetwork(RL2QNetwork):
         embed_kwargs: Optional[Dict[str, Any]] = None,
         q_hidden_dim: int = 64,
     ) -> None:
-        super().__init__(
-            observation_space, n_actions, fusion_dim, lstm_hidden_size, n_lstm_layers, dueling, embed_keys, embed_kwargs
-        )
+        super().__init__(observation_space, fusion_dim, lstm_hidden_size, n_lstm_layers, embed_keys, embed_kwargs)
         self.z_dim = lstm_hidden_size
+        # The head is registered right after the encoder, where it stood when it replaced RL²'s: the
+        # parameters keep their order, so optimizer states saved before still match them.
+        self.head = DuelingHead(q_hidden_dim, n_actions) if dueling else nn.Linear(q_hidden_dim, n_actions)
         keys = [k for k in CURRENT_KEYS if k in embed_keys]
         self.current_embedder = TrialInputEmbedder(observation_space, keys=keys, **(embed_kwargs or {}))
         self.q_hidden = nn.Sequential(nn.Linear(self.current_embedder.embed_dim + self.z_dim, q_hidden_dim), nn.ReLU())
-        # replaces RL²'s head, which read the LSTM output alone
-        self.head = DuelingHead(q_hidden_dim, n_actions) if dueling else nn.Linear(q_hidden_dim, n_actions)
 
     def q_values(self, obs: Dict[str, th.Tensor], z: th.Tensor) -> th.Tensor:
         """Q(s_t, i, z, .): ``obs[k]`` ``[*batch, ...]`` and ``z`` ``[*batch, z_dim]`` -> ``[*batch, A]``."""

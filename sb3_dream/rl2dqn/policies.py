@@ -1,9 +1,9 @@
-"""RL²'s recurrent dueling Q-network (paper, Appendix B.3) and its SB3 policy."""
+"""RL²'s recurrent dueling Q-network (paper, Appendix B.3), the history encoder it shares, and its SB3 policy."""
 
 from __future__ import annotations
 
 import copy
-from typing import Any, ClassVar, Dict, Optional, Sequence, Tuple, Type
+from typing import Any, ClassVar, Dict, List, Optional, Sequence, Tuple, Type
 
 import numpy as np
 import torch as th
@@ -17,19 +17,20 @@ from sb3_dream.common.embedders import TRIAL_KEYS, TrialInputEmbedder, check_tri
 from sb3_dream.common.recurrent import DuelingHead, LSTMStates, reset_lstm_states, unroll_lstm, zero_lstm_states
 
 
-class RL2QNetwork(nn.Module):
-    """Q(s_t, i, tau_:t, a) of RL²: per-step embeddings -> linear 64 + ReLU -> LSTM 64 -> dueling head.
+class HistoryQNetwork(nn.Module):
+    """RL²'s history encoder e(tau_:t), with the Q-values read from it left to a subclass.
 
     Per-step input (:class:`~sb3_dream.common.embedders.TrialInputEmbedder`): state ``obs`` (64, or
     128 for images), instruction (64), previous action (16), previous reward (16, linear),
-    episode-start flag (16), concatenated.
+    episode-start flag (16), concatenated -> linear ``fusion_dim`` + ReLU -> LSTM. A subclass adds
+    the modules its :meth:`q_values` reads and nothing else: RL² reads the LSTM output alone
+    (:class:`RL2QNetwork`), IMPORT and VariBAD read it with the current state
+    (:class:`sb3_dream.common.conditioned.ConditionedQNetwork`).
 
     :param observation_space: a Dict space with at least ``obs``.
-    :param n_actions: number of discrete actions.
     :param fusion_dim: the linear layer over the concatenated embeddings (paper: 64).
     :param lstm_hidden_size: the LSTM's size (paper: 64).
     :param n_lstm_layers: stacked LSTM layers (paper: 1).
-    :param dueling: dueling head (paper) or a single linear Q head.
     :param embed_keys: which observation keys to embed when present.
     :param embed_kwargs: sizes for :class:`~sb3_dream.common.embedders.TrialInputEmbedder`.
     """
@@ -37,11 +38,9 @@ class RL2QNetwork(nn.Module):
     def __init__(
         self,
         observation_space: spaces.Dict,
-        n_actions: int,
         fusion_dim: int = 64,
         lstm_hidden_size: int = 64,
         n_lstm_layers: int = 1,
-        dueling: bool = True,
         embed_keys: Sequence[str] = TRIAL_KEYS,
         embed_kwargs: Optional[Dict[str, Any]] = None,
     ) -> None:
@@ -49,9 +48,6 @@ class RL2QNetwork(nn.Module):
         self.embedder = TrialInputEmbedder(observation_space, keys=embed_keys, **(embed_kwargs or {}))
         self.fusion = nn.Sequential(nn.Linear(self.embedder.embed_dim, fusion_dim), nn.ReLU())
         self.lstm = nn.LSTM(fusion_dim, lstm_hidden_size, num_layers=n_lstm_layers, batch_first=True)
-        self.head: nn.Module = (
-            DuelingHead(lstm_hidden_size, n_actions) if dueling else nn.Linear(lstm_hidden_size, n_actions)
-        )
         self.n_lstm_layers, self.lstm_hidden_size = n_lstm_layers, lstm_hidden_size
 
     def initial_states(self, batch: int, device: th.device | str = "cpu") -> LSTMStates:
@@ -76,10 +72,9 @@ class RL2QNetwork(nn.Module):
         return out.squeeze(1), next_states
 
     def q_values(self, obs: Dict[str, th.Tensor], history: th.Tensor) -> th.Tensor:
-        """Q-values from the history embedding (``[..., hidden]`` -> ``[..., A]``). RL² reads the
-        history alone; a subclass may condition on more of ``obs`` (the hook of
-        :class:`sb3_dream.common.conditioned.ConditionedQNetwork`)."""
-        return self.head(history)
+        """Q-values from the history embedding (``[..., hidden]`` -> ``[..., A]``) and, as the
+        subclass needs, the current step's ``obs``."""
+        raise NotImplementedError
 
     def forward(
         self,
@@ -106,6 +101,38 @@ class RL2QNetwork(nn.Module):
         return self.q_values(obs, out), states, next_states
 
 
+class RL2QNetwork(HistoryQNetwork):
+    """Q(s_t, i, tau_:t, a) of RL²: per-step embeddings -> linear 64 + ReLU -> LSTM 64 -> dueling head.
+
+    The history encoder is :class:`HistoryQNetwork`'s; the head reads its output alone.
+
+    :param n_actions: number of discrete actions.
+    :param dueling: dueling head (paper) or a single linear Q head.
+    The other parameters are :class:`HistoryQNetwork`'s.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        n_actions: int,
+        fusion_dim: int = 64,
+        lstm_hidden_size: int = 64,
+        n_lstm_layers: int = 1,
+        dueling: bool = True,
+        embed_keys: Sequence[str] = TRIAL_KEYS,
+        embed_kwargs: Optional[Dict[str, Any]] = None,
+    ) -> None:
+        super().__init__(observation_space, fusion_dim, lstm_hidden_size, n_lstm_layers, embed_keys, embed_kwargs)
+        # built after the encoder, as it always was: the same random draws, in the same order
+        self.head: nn.Module = (
+            DuelingHead(lstm_hidden_size, n_actions) if dueling else nn.Linear(lstm_hidden_size, n_actions)
+        )
+
+    def q_values(self, obs: Dict[str, th.Tensor], history: th.Tensor) -> th.Tensor:
+        """Q-values from the history embedding alone (``[..., hidden]`` -> ``[..., A]``)."""
+        return self.head(history)
+
+
 class RL2DQNPolicy(BasePolicy):
     """Policy of :class:`~sb3_dream.rl2dqn.RL2DQN`: an online and a target :class:`RL2QNetwork`.
 
@@ -121,8 +148,8 @@ class RL2DQNPolicy(BasePolicy):
     :param network_kwargs: further arguments of :attr:`q_network_class` (a subclass's Q-network).
     """
 
-    #: the Q-network class (a subclass of :class:`RL2QNetwork`) built twice: online and target
-    q_network_class: ClassVar[Type[RL2QNetwork]] = RL2QNetwork
+    #: the Q-network class (a :class:`HistoryQNetwork`) built twice: online and target
+    q_network_class: ClassVar[Type[HistoryQNetwork]] = RL2QNetwork
     action_space: spaces.Discrete
     observation_space: spaces.Dict
 
@@ -159,19 +186,30 @@ class RL2DQNPolicy(BasePolicy):
             embed_kwargs=dict(embed_kwargs or {}),
             **network_kwargs,
         )
-        self.q_net = self.q_network_class(
+        self._build_networks(
             observation_space,
             int(action_space.n),
-            **{
+            {
                 **self.net_kwargs,
                 "embed_kwargs": {"normalize_images": normalize_images, **self.net_kwargs["embed_kwargs"]},
             },
         )
+        self.optimizer = self.optimizer_class(self.trained_parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def _build_networks(self, observation_space: spaces.Dict, n_actions: int, network_kwargs: Dict[str, Any]) -> None:
+        """Build the online Q-network and its target from ``network_kwargs`` (the policy's network
+        arguments). A hook: a subclass may take its own arguments out of ``network_kwargs`` and
+        build further modules, which :meth:`trained_parameters` then lists."""
+        self.q_net = self.q_network_class(observation_space, n_actions, **network_kwargs)
         self.q_net_target = copy.deepcopy(self.q_net)
         self.q_net_target.load_state_dict(self.q_net.state_dict())
         self.q_net_target.train(False)
         self.q_net_target.requires_grad_(False)
-        self.optimizer = self.optimizer_class(self.q_net.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def trained_parameters(self) -> List[nn.Parameter]:
+        """The parameters the optimizer steps and the update clips: the online Q-network's (a
+        subclass adds those of the modules it builds besides the Q-networks)."""
+        return list(self.q_net.parameters())
 
     @classmethod
     def check_spaces(cls, observation_space: spaces.Space, action_space: spaces.Space) -> None:
