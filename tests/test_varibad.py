@@ -15,7 +15,7 @@ from sb3_dream.common.buffers import SequenceReplayBufferSamples
 from sb3_dream.common.wrappers import RL2ObservationWrapper
 from sb3_dream.evaluation import evaluate_meta
 from sb3_dream.varibad import TransitionDecoder, varibad_decoder_loss
-from test_import_dqn import _ScrambleProblemId
+from test_import_dqn import _ScrambleProblemId, keys_without_gradient, layers_built_and_dropped
 from test_rl2dqn import SMALL_NET, CueMemoryEnv
 
 
@@ -38,19 +38,45 @@ def test_paper_defaults_sizes_and_short_form():
     assert (model.latent_variance, model.decoder_loss_coef, model.predict_states) == (1e-5, 1.0, None)
     net = model.q_net
     assert net.lstm.hidden_size == 64 and net.q_hidden[0].in_features == 64 + 64 + 64  # [e(s); e(i); mu]
-    dec = net.decoder
+    dec = model.policy.decoder
     assert dec.action_embedder.embedding_dim == 32 and dec.state_embedder.embed_dim == 64
     assert (dec.hidden.in_features, dec.hidden.out_features, dec.hidden2.out_features) == (64 + 64 + 32, 128, 128)
     assert dec.reward_head.out_features == 1 and dec.state_head.out_features == model.observation_space["obs"].shape[0]
     n_opt = sum(p.numel() for g in model.policy.optimizer.param_groups for p in g["params"])
-    assert n_opt == sum(p.numel() for p in net.parameters())  # the decoders are trained too
+    assert n_opt == sum(p.numel() for p in [*net.parameters(), *dec.parameters()])  # the decoders are trained too
     # the state decoder is dropped for image states (the paper's 3D env), unless asked for
     image = make_vec_env(CueMemoryEnv, n_envs=1, env_kwargs=dict(image=True))
-    assert small_model(image, policy="CnnLstmPolicy").q_net.decoder.state_head is None
-    assert small_model(image, policy="CnnLstmPolicy", predict_states=True).q_net.decoder.state_head is not None
-    assert small_model(CueMemoryEnv(), predict_states=False).q_net.decoder.state_head is None
+    assert small_model(image, policy="CnnLstmPolicy").policy.decoder.state_head is None
+    assert small_model(image, policy="CnnLstmPolicy", predict_states=True).policy.decoder.state_head is not None
+    assert small_model(CueMemoryEnv(), predict_states=False).policy.decoder.state_head is None
     # works on any RL² input, no problem ID needed
-    assert VariBAD(RL2ObservationWrapper(gym.make("CartPole-v1"))).q_net.decoder.state_dim == 4
+    assert VariBAD(RL2ObservationWrapper(gym.make("CartPole-v1"))).policy.decoder.state_dim == 4
+
+
+def test_the_policy_builds_only_what_it_uses_and_the_target_holds_no_decoder(monkeypatch):
+    assert layers_built_and_dropped(monkeypatch, lambda: small_model(CueMemoryEnv())) == []
+    policy = small_model(CueMemoryEnv()).policy
+    keys = list(policy.state_dict())
+    assert {key.split(".")[0] for key in keys} == {"q_net", "q_net_target", "decoder"}
+    # the target holds exactly what the TD target reads: the Q-network, no decoder
+    assert not any("decoder" in key for key in keys if not key.startswith("decoder."))
+    assert set(policy.q_net_target.state_dict()) == set(policy.q_net.state_dict())
+
+
+def test_every_saved_parameter_but_the_targets_is_trained():
+    model = small_model(CueMemoryEnv(), learning_starts=10)
+    model.learn(40)
+    assert keys_without_gradient(model, model.replay_buffer._get_samples(np.arange(4))) == []
+
+
+def test_a_policy_saved_with_the_decoder_in_its_q_networks_loads():
+    saved = small_model(CueMemoryEnv(), seed=1).policy.state_dict()
+    # the earlier layout: the decoder inside the online Q-network, and an unused copy in the target
+    earlier = {("q_net." + key if key.startswith("decoder.") else key): value for key, value in saved.items()}
+    earlier.update({"q_net_target." + key: th.zeros_like(v) for key, v in saved.items() if key.startswith("decoder.")})
+    policy = small_model(CueMemoryEnv(), seed=2).policy
+    policy.load_state_dict(earlier)
+    assert all(th.equal(value, saved[key]) for key, value in policy.state_dict().items())
 
 
 def test_sb3_argument_and_bad_input_errors():
@@ -133,7 +159,7 @@ def test_update_loss_is_td_plus_decoder_loss_and_z_is_sampled():
     assert loss.item() == pytest.approx((logged["td_loss"] + 0.3 * decoder).item(), rel=1e-6)
     # with latent_variance 0, z = mu: the decoder loss is the one of the online history embedding
     history, _ = model.q_net.encode(batch.observations, model.q_net.initial_states(4))
-    recomputed = varibad_decoder_loss(model.q_net.decoder, history, batch)[0]
+    recomputed = varibad_decoder_loss(model.policy.decoder, history, batch)[0]
     assert recomputed.item() == pytest.approx(decoder.item(), rel=1e-5)
     model.latent_variance = 1e-2
     mu = th.zeros(20_000, 8)
@@ -150,7 +176,7 @@ def test_save_load_same_actions_vec_envs_callbacks_and_meta_test(tmp_path):
     assert model._n_updates > 0 and (tmp_path / "ckpt" / "varibad_40_steps.zip").exists()
     model.save(tmp_path / "varibad.zip")
     loaded = VariBAD.load(tmp_path / "varibad.zip", env=make_vec_env(CueMemoryEnv, n_envs=3))
-    assert loaded.q_net.decoder.state_head is not None and loaded.latent_variance == model.latent_variance
+    assert loaded.policy.decoder.state_head is not None and loaded.latent_variance == model.latent_variance
     env = CueMemoryEnv(n_exec_episodes=2)
     obs, _ = env.reset(seed=3)
     s1 = s2 = None

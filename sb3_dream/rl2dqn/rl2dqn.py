@@ -436,7 +436,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             loss, logged = self._loss(batch)
             self.policy.optimizer.zero_grad()
             loss.backward()
-            th.nn.utils.clip_grad_norm_(self.q_net.parameters(), self.max_grad_norm)
+            th.nn.utils.clip_grad_norm_(self.policy.trained_parameters(), self.max_grad_norm)
             self.policy.optimizer.step()
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:

@@ -1,8 +1,8 @@
-"""VariBAD's networks in the DREAM paper's DQN form (Appendix B.3): the Q-network and the decoders."""
+"""VariBAD's networks in the DREAM paper's DQN form (Appendix B.3): the Q-network, the decoders and the policy."""
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch as th
@@ -12,7 +12,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from sb3_dream.common.conditioned import ConditionedQNetwork, ConditionedQPolicy
-from sb3_dream.common.embedders import TRIAL_KEYS, make_state_embedder
+from sb3_dream.common.embedders import make_state_embedder
 from sb3_dream.rl2dqn.policies import CnnLstmPolicy as RL2CnnLstmPolicy
 
 
@@ -106,67 +106,73 @@ class TransitionDecoder(nn.Module):
 
 
 class VariBADQNetwork(ConditionedQNetwork):
-    """Q(s_t, i, z, a) over ``[e(s_t); e(i); z]`` with z around mu = e(tau_:t), and the decoders.
+    """Q(s_t, i, z, a) over ``[e(s_t); e(i); z]`` with z around mu = e(tau_:t).
 
-    The encoder enc(z | tau_:t) is RL²'s history embedding (mu, 64 units, as in the authors' code);
-    :class:`TransitionDecoder` is ``decoder``. The decoder lives in the Q-network so one optimizer,
-    one gradient clipping and one save cover it (the target network's copy is unused).
-
-    :param decoder_hidden_dim: the decoder's layers (paper: 128).
-    :param decoder_action_embed_dim: the decoder's e(a) (paper: 32).
-    :param predict_states: build the state decoder (VariBAD picks: not for image states).
-    The other parameters are :class:`~sb3_dream.common.conditioned.ConditionedQNetwork`'s.
+    The encoder enc(z | tau_:t) is RL²'s history embedding (mu, 64 units, as in the authors' code).
+    The decoders are not part of it: the policy holds them (:attr:`VariBADPolicy.decoder`), so the
+    target network, a copy of this one, holds only what the TD target reads.
+    The parameters are :class:`~sb3_dream.common.conditioned.ConditionedQNetwork`'s.
     """
 
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        n_actions: int,
-        fusion_dim: int = 64,
-        lstm_hidden_size: int = 64,
-        n_lstm_layers: int = 1,
-        dueling: bool = True,
-        embed_keys: Sequence[str] = TRIAL_KEYS,
-        embed_kwargs: Optional[Dict[str, Any]] = None,
-        q_hidden_dim: int = 64,
-        decoder_hidden_dim: int = 128,
-        decoder_action_embed_dim: int = 32,
-        predict_states: bool = True,
-    ) -> None:
-        super().__init__(
-            observation_space,
-            n_actions,
-            fusion_dim,
-            lstm_hidden_size,
-            n_lstm_layers,
-            dueling,
-            embed_keys,
-            embed_kwargs,
-            q_hidden_dim,
-        )
-        ek = embed_kwargs or {}
+
+#: the arguments of the policy's :class:`TransitionDecoder`, with their defaults (the paper's sizes)
+DECODER_DEFAULTS: Dict[str, Any] = {"decoder_hidden_dim": 128, "decoder_action_embed_dim": 32, "predict_states": True}
+
+
+class VariBADPolicy(ConditionedQPolicy):
+    """Policy of :class:`~sb3_dream.varibad.VariBAD`: an online and a target :class:`VariBADQNetwork`,
+    and the :class:`TransitionDecoder` ``decoder``.
+
+    The decoder is trained with the online network (one optimizer, one gradient clipping, one
+    save); the TD target never reads it, so it has no target copy. ``predict`` acts on z = mu =
+    e(tau_:t), the posterior mean. ``policy_kwargs`` may set the network's sizes (``q_hidden_dim``,
+    ...) and the decoder's: ``decoder_hidden_dim`` (paper: 128), ``decoder_action_embed_dim``
+    (paper: 32), ``predict_states`` (build the state decoder; VariBAD fills it: not for image states).
+    """
+
+    q_network_class = VariBADQNetwork
+    decoder: TransitionDecoder
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.register_load_state_dict_pre_hook(_move_decoder_out_of_q_networks)
+
+    def _build_networks(self, observation_space: spaces.Dict, n_actions: int, network_kwargs: Dict[str, Any]) -> None:
+        """The Q-networks from the network arguments, then the decoder from its own."""
+        network_kwargs = dict(network_kwargs)
+        decoder_kwargs = {key: network_kwargs.pop(key, default) for key, default in DECODER_DEFAULTS.items()}
+        super()._build_networks(observation_space, n_actions, network_kwargs)
+        ek = network_kwargs.get("embed_kwargs") or {}
+        # built after the Q-network, as when it was its last module: the same order of random draws
         self.decoder = TransitionDecoder(
             observation_space.spaces["obs"],
             n_actions,
-            lstm_hidden_size,
-            action_embed_dim=decoder_action_embed_dim,
-            hidden_dim=decoder_hidden_dim,
-            predict_states=predict_states,
+            self.q_net.z_dim,
+            action_embed_dim=decoder_kwargs["decoder_action_embed_dim"],
+            hidden_dim=decoder_kwargs["decoder_hidden_dim"],
+            predict_states=decoder_kwargs["predict_states"],
             per_dim=ek.get("per_dim", 32),
             state_hidden_dims=ek.get("state_hidden_dims", (256, 64)),
             image_embed_dim=ek.get("image_embed_dim", 128),
             normalize_images=ek.get("normalize_images", True),
         )
 
+    def trained_parameters(self) -> List[nn.Parameter]:
+        """The online Q-network's parameters, then the decoder's."""
+        return [*self.q_net.parameters(), *self.decoder.parameters()]
 
-class VariBADPolicy(ConditionedQPolicy):
-    """Policy of :class:`~sb3_dream.varibad.VariBAD`: an online and a target :class:`VariBADQNetwork`.
 
-    ``predict`` acts on z = mu = e(tau_:t), the posterior mean. ``policy_kwargs`` may set the
-    network's sizes (``q_hidden_dim``, ``decoder_hidden_dim``, ...); VariBAD fills ``predict_states``.
-    """
-
-    q_network_class = VariBADQNetwork
+def _move_decoder_out_of_q_networks(
+    module: nn.Module, state_dict: Dict[str, Any], prefix: str, local_metadata: Any, strict: bool, *args: Any
+) -> None:
+    """Read a policy saved when the decoder lived in the Q-network: its online copy becomes
+    ``decoder``, the target's unused copy is dropped. The parameter order the optimizer saw is the
+    same (the Q-network's, then the decoder's), so the saved optimizer state still matches."""
+    for key in list(state_dict):
+        if key.startswith(f"{prefix}q_net.decoder."):
+            state_dict[f"{prefix}decoder." + key[len(f"{prefix}q_net.decoder.") :]] = state_dict.pop(key)
+        elif key.startswith(f"{prefix}q_net_target.decoder."):
+            del state_dict[key]
 
 
 class MultiInputLstmPolicy(VariBADPolicy):

@@ -206,7 +206,7 @@ class VariBAD(RL2DQN):
         td, q_mean, _, z = conditioned_double_dqn_loss(
             self.q_net, self.q_net_target, batch, self.sample_z, self.gamma, self.td_loss, self.burn_in
         )
-        decoder_loss, reward_loss, state_loss = varibad_decoder_loss(self.q_net.decoder, z, batch)
+        decoder_loss, reward_loss, state_loss = varibad_decoder_loss(self.policy.decoder, z, batch)
         loss = td + self.decoder_loss_coef * decoder_loss
         logged = {"loss": loss.detach(), "td_loss": td.detach(), "reward_decoder_loss": reward_loss.detach()}
         if state_loss is not None:
