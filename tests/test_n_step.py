@@ -115,12 +115,59 @@ def test_dream_rejects_bad_n_step(name, value):
         DREAM("MetaBandit-v0", execution_sampling="episodes", **{name: value})
 
 
-def test_execution_n_step_needs_episodes():
-    with pytest.raises(ValueError, match="execution_n_step=3 needs execution_sampling='episodes'"):
-        DREAM("MetaBandit-v0", execution_n_step=3)
-    model = DREAM("MetaBandit-v0", exploration_n_step=3)  # the exploration Q always has whole sequences
-    assert (model.execution_n_step, model.exploration_n_step) == (1, 3)
-    assert (DREAM("MetaBandit-v0").execution_n_step, DREAM("MetaBandit-v0").exploration_n_step) == (1, 1)
+def test_defaults_are_one_step():
+    model = DREAM("MetaBandit-v0")
+    assert (model.execution_n_step, model.exploration_n_step) == (1, 1)
+
+
+def test_n_step_with_sampled_transitions_is_the_loop_over_the_buffer():
+    # Algorithm 1's sampling: each transition's window follows B_exe's links to the next transitions
+    # of its execution episode, and its target bootstraps at the window's last s'.
+    gamma, n = 0.9, 3
+    model = DREAM(
+        "MetaBus-v0",
+        seed=2,
+        gamma=gamma,
+        execution_n_step=n,
+        exploration_n_step=n,
+        parallel_updates=False,
+        policy_kwargs=dict(execution_time_input=True),  # s' at the window's end has its own step
+        **FAST,
+    )
+    model.learn(500)
+    assert model._n_updates > 0
+    buffer, policy = model.replay_buffer.execution, model.policy
+    replay = model.replay_buffer
+    idx = np.random.default_rng(0).integers(len(buffer), size=16)  # the rows the sampler draws first
+    assert not replay.stale(idx).any()  # so it draws no others
+    exe, traj = replay.sample_execution(16, np.random.default_rng(0), n_step=n)
+    lengths = exe.window_mask.sum(1)
+    assert (lengths < n).any() and (lengths == n).any()  # some windows cut by their episode's end
+    net, target_net = policy.execution_q, policy.execution_q_target
+    with th.no_grad():
+        z_g = policy.decoder(traj.states, traj.actions)[th.arange(16), traj.lengths]
+        z_target = policy.decoder_target(traj.states, traj.actions, traj.lengths)
+        q = net(exe.states, exe.instructions, z_g, exe.steps)[0].gather(1, exe.actions[:, None]).squeeze(1)
+    errors = []
+    for j, row in enumerate(idx):  # walk the episode's links by hand
+        total, k = 0.0, 0
+        while True:
+            total += gamma**k * float(buffer.rewards[row])
+            k += 1
+            following = buffer.next_in_episode[row]
+            if buffer.dones[row] or k == n or following < 0:
+                break
+            row = following
+        assert float(lengths[j]) == k
+        if not buffer.dones[row]:
+            s_next = th.as_tensor(buffer.next_states[[row]])
+            i, t = exe.instructions[[j]], th.as_tensor(buffer.steps[[row]] + 1)
+            with th.no_grad():
+                best = int(net(s_next, i, z_g[[j]], t)[0].argmax())
+                total += gamma**k * float(target_net(s_next, i, z_target[[j]], t)[0][0, best])
+        errors.append((float(q[j]) - total) ** 2)
+    stats = updates.execution_update(model, exe, traj)
+    assert stats["execution_loss_traj"] == pytest.approx(np.mean(errors), rel=1e-5)
 
 
 def test_dream_n_step_losses_are_the_loop_computation(tmp_path):

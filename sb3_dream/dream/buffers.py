@@ -8,7 +8,8 @@
   reference (slot and generation) to their trial's exploration trajectory in B_exp (capacity
   100K). A transition whose trajectory was overwritten is never sampled. Each transition also
   links to the next one of its execution episode, so whole episodes can be sampled
-  (``DREAM(execution_sampling="episodes")``).
+  (``DREAM(execution_sampling="episodes")``), or a transition with the ones after it (n-step
+  targets, ``DREAM(execution_n_step=n)``).
 
 Both are plain numpy ring buffers, so pickling them (``save_replay_buffer``) saves everything.
 """
@@ -52,6 +53,14 @@ class ExecutionBatch(NamedTuple):
     state_frames: Optional[DistinctFrames] = None
     next_state_frames: Optional[DistinctFrames] = None
     shared_frames: int = 0  # frames both some s and some s': state_frames' last, next_state_frames' first
+    # n-step windows of sampled transitions (DREAM(execution_n_step=n > 1) with "transitions"
+    # sampling; None otherwise): the rewards, terminals and validity of each transition and of the
+    # n - 1 that follow it in its execution episode, [B, n]; ``next_states`` (and ``next_steps``,
+    # the step of that state) are then those of each window's last valid transition.
+    window_rewards: Optional[th.Tensor] = None
+    window_dones: Optional[th.Tensor] = None
+    window_mask: Optional[th.Tensor] = None
+    next_steps: Optional[th.Tensor] = None
 
 
 def _image_states(space: spaces.Space) -> bool:
@@ -226,8 +235,24 @@ class ExecutionBuffer:
         links[a[same]] = b[same]
         return links
 
-    def batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray) -> ExecutionBatch:
+    def windows(self, idx: np.ndarray, n_step: int) -> np.ndarray:
+        """Each transition of ``idx`` and the ``n_step - 1`` that follow it in its execution episode,
+        ``[B, n_step]`` rows of the buffer, -1 after a terminal transition or the last one stored."""
+        rows = np.full((len(idx), n_step), -1, dtype=np.int64)
+        rows[:, 0] = idx
+        for k in range(1, n_step):
+            previous = rows[:, k - 1]
+            going = (previous >= 0) & (self.dones[np.maximum(previous, 0)] == 0)  # no step after a terminal
+            rows[:, k] = np.where(going, self.next_in_episode[np.maximum(previous, 0)], -1)
+        return rows
+
+    def batch(
+        self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray, n_step: int = 1
+    ) -> ExecutionBatch:
         """Transitions ``idx``; transition j reads trajectory ``trajectories[j]`` of ``slots``.
+
+        ``n_step > 1``: with each transition's n-step window (``window_*``): s' is then the last
+        state of the window, where its target bootstraps.
 
         With image states, the distinct frames of s and s' are laid out once, as [frames only some
         s holds, frames both some s and some s' hold, frames only some s' holds]: ``state_frames``
@@ -236,7 +261,19 @@ class ExecutionBuffer:
         s pass where it can (:meth:`~sb3_dream.common.embedders.ImageEmbedder.embed_pair`).
         """
         to = lambda a: th.as_tensor(a, device=self.device)  # noqa: E731
-        states, next_states = self.states[idx], self.next_states[idx]
+        ends, windows = idx, {}
+        if n_step > 1:
+            rows = self.windows(idx, n_step)
+            valid = rows >= 0
+            ends = rows[np.arange(len(idx)), valid.sum(axis=1) - 1]  # each window's last transition
+            safe = np.maximum(rows, 0)
+            windows = dict(
+                window_rewards=to(np.where(valid, self.rewards[safe], 0.0).astype(np.float32)),
+                window_dones=to(np.where(valid, self.dones[safe], 0.0).astype(np.float32)),
+                window_mask=to(valid.astype(np.float32)),
+                next_steps=to(self.steps[ends] + 1),
+            )
+        states, next_states = self.states[idx], self.next_states[ends]
         frames: Dict[str, Any] = {}
         if self.image_states and self.distinct_frames:
             n = len(idx)
@@ -267,6 +304,7 @@ class ExecutionBuffer:
             steps=to(self.steps[idx]),
             trajectories=to(trajectories),
             **frames,
+            **windows,
         )
 
 
@@ -300,7 +338,7 @@ class DreamReplayBuffer:
         return self.exploration.get(rng.integers(len(self.exploration), size=batch_size))
 
     def sample_execution(
-        self, batch_size: int, rng: np.random.Generator, episodes: bool = False
+        self, batch_size: int, rng: np.random.Generator, episodes: bool = False, n_step: int = 1
     ) -> Tuple[ExecutionBatch, TrajectoryBatch]:
         """An execution batch and the exploration trajectories its transitions read.
 
@@ -309,11 +347,16 @@ class DreamReplayBuffer:
         ``episodes=True`` (the authors' code samples its replay as whole episodes): every stored
         transition of ``batch_size`` execution episodes, drawn uniformly among the episodes whose
         start and exploration trajectory are still stored; one trajectory per episode.
+        ``n_step > 1`` with transitions: each comes with its n-step window (see
+        :meth:`ExecutionBuffer.batch`); a batch of whole episodes holds its windows already.
         """
-        execution = self.sample_episodes(batch_size, rng) if episodes else self.sample_transitions(batch_size, rng)
+        if episodes:
+            execution = self.sample_episodes(batch_size, rng)
+        else:
+            execution = self.sample_transitions(batch_size, rng, n_step)
         return execution, self.exploration.get(execution.slots)
 
-    def sample_transitions(self, batch_size: int, rng: np.random.Generator) -> ExecutionBatch:
+    def sample_transitions(self, batch_size: int, rng: np.random.Generator, n_step: int = 1) -> ExecutionBatch:
         exe = self.execution
         idx = rng.integers(len(exe), size=batch_size)
         for _ in range(100):
@@ -323,7 +366,7 @@ class DreamReplayBuffer:
             idx[stale] = rng.integers(len(exe), size=int(stale.sum()))
         else:
             raise RuntimeError("the execution buffer references no stored exploration trajectory: grow buffer_size")
-        return exe.batch(idx, exe.slots[idx], np.arange(batch_size))
+        return exe.batch(idx, exe.slots[idx], np.arange(batch_size), n_step)
 
     def sample_episodes(self, n_episodes: int, rng: np.random.Generator) -> ExecutionBatch:
         exe = self.execution

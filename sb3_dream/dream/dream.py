@@ -135,8 +135,10 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         end (no bootstrap after a terminal step; with ``bootstrap_at_horizon`` the horizon's last
         s' bootstraps). A reward reaches the values n steps back per update instead of one, for
         faster learning from few samples, at the price of bias from the off-policy (epsilon-greedy,
-        older) actions inside the window. Needs ``execution_sampling="episodes"``, whose batches
-        hold the following transitions (:func:`sb3_dream.common.recurrent.n_step_targets`).
+        older) actions inside the window (:func:`sb3_dream.common.recurrent.n_step_targets`). With
+        ``execution_sampling="episodes"`` the batch holds the following transitions already; with
+        ``"transitions"`` each sampled transition comes with the n - 1 after it in its episode
+        (B_exe links them) and s' is the window's last state, so the update's cost is unchanged.
     :param exploration_n_step: the same for the exploration Q's targets over its trajectories,
         whose rewards are Equation 5's information gains: 1 (default) is the paper's; n > 1 sums the
         next n gains (the exploration episode's end is terminal).
@@ -232,12 +234,6 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
         check_choice("execution_sampling", execution_sampling, EXECUTION_SAMPLING)
-        if execution_n_step > 1 and execution_sampling != "episodes":
-            # Algorithm 1's batch holds single transitions, not the ones after them the n-step sum reads.
-            raise ValueError(
-                f"execution_n_step={execution_n_step!r} needs execution_sampling='episodes' (n-step targets sum the "
-                f"rewards of the following transitions of each episode), got execution_sampling={execution_sampling!r}"
-            )
         if policy_kwargs and "z_dim" in policy_kwargs and policy_kwargs["z_dim"] != z_dim:
             raise ValueError(
                 f"z_dim is DREAM's argument: pass z_dim={policy_kwargs['z_dim']!r} to DREAM, not in policy_kwargs "
@@ -526,7 +522,9 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         if exploration_ready:
             explored = buffers.sample_trajectories(batch_size, self._rng)
         if execution_ready:
-            exe, traj = buffers.sample_execution(batch_size, self._rng, episodes=self.execution_sampling == "episodes")
+            exe, traj = buffers.sample_execution(
+                batch_size, self._rng, episodes=self.execution_sampling == "episodes", n_step=self.execution_n_step
+            )
         if self.updates_in_parallel and exploration_ready and execution_ready:
             return updates.parallel_update(self, explored, exe, traj)
         if exploration_ready:

@@ -35,6 +35,7 @@ def execution_td_losses(
     n_step: int = 1,
     episodes: Optional[th.Tensor] = None,
     steps: Optional[th.Tensor] = None,
+    windows: Optional[Tuple[th.Tensor, th.Tensor, th.Tensor]] = None,
 ) -> Tuple[th.Tensor, th.Tensor]:
     """Equation 2's two DDQN losses on one batch of execution transitions evaluated twice.
 
@@ -44,19 +45,27 @@ def execution_td_losses(
     :param next_q_target: ``[2B, A]`` the target Q at s' (evaluates it).
     :param rewards: ``[2B]``; ``dones``: ``[2B]``, 1 where s' is terminal.
     :param n_rows: B.
-    :param n_step: 1 (the paper's one-step targets) or n > 1: n-step targets
-        (:func:`execution_n_step_targets`), which need the batch's whole episodes.
-    :param episodes: ``[B]`` with ``n_step > 1``: the execution episode of each transition
-        (0 .. E-1, ``ExecutionBatch.trajectories`` of a batch of whole episodes).
-    :param steps: ``[B]`` with ``n_step > 1``: each transition's step within its episode.
+    :param n_step: 1 (the paper's one-step targets) or n > 1: n-step targets, from the batch's
+        whole episodes (``episodes`` and ``steps``, :func:`execution_n_step_targets`) or from each
+        sampled transition's window (``windows``, :func:`window_n_step_targets`).
+    :param episodes: ``[B]``, for a batch of whole episodes: the episode of each transition
+        (0 .. E-1, ``ExecutionBatch.trajectories``).
+    :param steps: ``[B]``, for a batch of whole episodes: each transition's step within its episode.
+    :param windows: for a batch of single transitions, ``[B, n]`` each: the rewards, terminals and
+        validity of each transition's window (``ExecutionBatch.window_*``); s' is then the window's
+        last state.
     :return: the mean squared TD errors of the decoder's rows and of the encoder's rows.
     """
     with th.no_grad():
         if n_step == 1:
             target = double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
+        elif windows is not None:
+            target = window_n_step_targets(
+                next_q_online, next_q_target, *(w.repeat(2, 1) for w in windows), gamma, n_step
+            )
         else:
             if episodes is None or steps is None:
-                raise ValueError("n-step execution targets need each transition's episode and step")
+                raise ValueError("n-step execution targets need each transition's episode and step, or its window")
             # The two z sources' rows are two copies of the batch's episodes: E .. 2E-1 for the second.
             n_episodes = int(episodes.max()) + 1
             both = th.cat([episodes, episodes + n_episodes])
@@ -99,6 +108,39 @@ def execution_n_step_targets(
         lay_out(next_q_online), lay_out(next_q_target), lay_out(rewards), lay_out(dones), mask, gamma, n_step
     )
     return targets.reshape(-1)[cell]
+
+
+def window_n_step_targets(
+    next_q_online: th.Tensor,
+    next_q_target: th.Tensor,
+    window_rewards: th.Tensor,
+    window_dones: th.Tensor,
+    window_mask: th.Tensor,
+    gamma: float,
+    n_step: int,
+) -> th.Tensor:
+    """n-step double-DQN targets (:func:`~sb3_dream.common.recurrent.n_step_targets`) of single
+    transitions, each sampled with the ones after it in its episode (its window).
+
+    :param next_q_online: ``[N, A]`` the online Q at each window's last state, where it bootstraps;
+        ``next_q_target``: ``[N, A]`` the target Q there.
+    :param window_rewards: ``[N, n]``; ``window_dones``: ``[N, n]``; ``window_mask``: ``[N, n]``, 1 on
+        the window's transitions (a prefix: it stops after a terminal or the last stored one).
+    :return: ``[N]``, the target of each window's first transition.
+    """
+    n_rows, width = window_rewards.shape
+    end = window_mask.sum(dim=1).long() - 1  # the window's last transition: the bootstrap's column
+    rows = th.arange(n_rows, device=end.device)
+
+    def at_end(values: th.Tensor) -> th.Tensor:  # the Q-values in the end's column; no other is read
+        grid = values.new_zeros(n_rows, width, values.shape[-1])
+        grid[rows, end] = values
+        return grid
+
+    targets = n_step_targets(
+        at_end(next_q_online), at_end(next_q_target), window_rewards, window_dones, window_mask, gamma, n_step
+    )
+    return targets[:, 0]
 
 
 def bottleneck_loss(f: th.Tensor, threshold: float) -> th.Tensor:

@@ -42,6 +42,12 @@ def _frames_or(frames: Optional[DistinctFrames], states: th.Tensor) -> Union[th.
     return states if frames is None else frames
 
 
+def next_steps(batch: ExecutionBatch) -> th.Tensor:
+    """The step of each s' of ``batch`` within its execution episode: the next one, or an n-step
+    window's last state's."""
+    return batch.steps + 1 if batch.next_steps is None else batch.next_steps
+
+
 class ProblemEncoder(nn.Module):
     """f_psi(T): embeds each dimension of the problem's structured representation (Appendix B.3)."""
 
@@ -242,7 +248,7 @@ class ExecutionQNetwork(nn.Module):
             )
             current = self.join(e_current, batch.instructions, batch.steps)
             with th.no_grad():
-                following = self.join(e_following, batch.instructions, batch.steps + 1)
+                following = self.join(e_following, batch.instructions, next_steps(batch))
             return current, following
         current = self.embed(batch.states, batch.instructions, batch.steps)
         with th.no_grad():
@@ -253,7 +259,7 @@ class ExecutionQNetwork(nn.Module):
         """:meth:`transition_inputs`' s' part alone (a target network's pass)."""
         if self.lstm is not None:
             return self._episode_inputs(batch)[1]
-        return self.embed(_frames_or(batch.next_state_frames, batch.next_states), batch.instructions, batch.steps + 1)
+        return self.embed(_frames_or(batch.next_state_frames, batch.next_states), batch.instructions, next_steps(batch))
 
     def _episode_inputs(self, batch: ExecutionBatch) -> Tuple[th.Tensor, th.Tensor]:
         """A recurrent network's LSTM outputs for each transition's s and s' ([B, D] each).

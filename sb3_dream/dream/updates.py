@@ -93,6 +93,7 @@ def execution_update(
         n_step=model.execution_n_step,
         episodes=exe.trajectories,  # with execution_sampling="episodes", each transition's episode
         steps=exe.steps,
+        windows=None if exe.window_rewards is None else (exe.window_rewards, exe.window_dones, exe.window_mask),
     )
     bottleneck = losses.bottleneck_loss(f, model.bottleneck_threshold) if model.bottleneck else f.new_zeros(())
     decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
