@@ -136,11 +136,12 @@ def n_step_targets(
         y_t = sum_{k=0}^{m_t-1} gamma^k r_{t+k}
               + gamma^{m_t} (1 - d_{t+m_t-1}) Q_target(s_{t+m_t}, argmax_a Q_online(s_{t+m_t}, a)),
 
-    where the window is cut short at the sequence's end: m_t = min(n, steps up to and including the
-    first terminal one, d = 1, from t, valid steps left from t). A window ending on a terminal step
-    adds no bootstrap; one ending at the last stored step without a terminal (a time limit that
-    bootstraps, an episode still being collected) bootstraps at that step's s'. Padding (``mask``
-    0) gets a target of 0, to be masked out of the loss.
+    where the window is cut short at the sequence's end: m_t is the smallest of n, the steps from t
+    to the first terminal one (d = 1) included, and the valid steps left from t. A window ending on
+    a terminal step adds no bootstrap; one ending at the last valid step without a terminal (a time
+    limit that bootstraps, an episode still being collected) bootstraps at that step's s'. Padding
+    (``mask`` 0) gets a target of 0, to be masked out of the loss. The Q-values are the ones the
+    one-step targets take (at every s_{t+1}), so a longer n costs no further network pass.
 
     :param next_q_online: ``[B, T, A]`` online Q-values at s_{t+1} of each step (pick the action).
     :param next_q_target: ``[B, T, A]`` target-network Q-values at s_{t+1} (evaluate it).
