@@ -62,10 +62,10 @@ class VariBAD(RL2DQN):
     is the mean mu (the authors' code uses it directly, 64 units) and z ~ N(mu, nu^2 I) with the
     paper's fixed nu^2 = ``latent_variance`` = 1e-5. Q(s_t, i, z, a) reads ``[e(s_t); e(i); z]``
     (linear 64 + ReLU, dueling head; :class:`~sb3_dream.varibad.policies.VariBADQNetwork`). The
-    decoders (:class:`~sb3_dream.varibad.policies.TransitionDecoder`: e(a) 32 and e(s) over
-    ``[e(s); e(a); z]``, two linear layers of 128, a reward head and a state head) add the
-    mean-squared reconstruction loss :func:`varibad_decoder_loss` (weight ``decoder_loss_coef``)
-    to the TD loss; both train the encoder.
+    decoders (``policy.decoder``, a :class:`~sb3_dream.varibad.policies.TransitionDecoder`: e(a)
+    32 and e(s) over ``[e(s); e(a); z]``, two linear layers of 128, a reward head and a state
+    head; no target copy) add the mean-squared reconstruction loss :func:`varibad_decoder_loss`
+    (weight ``decoder_loss_coef``) to the TD loss; both train the encoder.
 
     **Where it differs from the original VariBAD** (Zintgraf et al., 2019): the policy is a
     double DQN trained from sequence replay, not PPO on fresh rollouts; the posterior variance is
