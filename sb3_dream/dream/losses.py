@@ -1,8 +1,9 @@
 """DREAM's objectives as pure functions of network outputs (paper, Section 4 and Appendix A).
 
 * :func:`execution_td_losses`: the execution Q's double-DQN losses (Equation 2's RL term), one for
-  z from the decoder and one for z from the encoder (one-step targets, the paper's, or n-step over
-  whole episodes: :func:`execution_n_step_targets`);
+  z from the decoder and one for z from the encoder (one-step targets, the paper's, or n-step:
+  over whole episodes, :func:`execution_n_step_targets`, or over each sampled transition's window,
+  :func:`window_n_step_targets`);
 * :func:`bottleneck_loss`: the information bottleneck on f (Equation 3, with the authors'
   threshold K);
 * :func:`decoder_loss`: the decoder's regression of every prefix g(tau_:t) toward f(T) (Equation 4);
