@@ -78,10 +78,14 @@ The summary and the figure cover the runs asked for and every other finished run
 them without training anything.
 
 **Algorithms:** ``dream`` (:class:`~sb3_dream.DREAM`), ``dream_no_bottleneck``
-(``DREAM(bottleneck=False)``, the paper's ablation) and ``rl2dqn``
-(:class:`~sb3_dream.rl2dqn.RL2DQN`, the paper's RL² baseline). ``--preset paper`` keeps every
-default (the paper's); ``--preset fast`` applies :data:`sb3_dream.presets.PRESETS` ``["fast"]``
-to DREAM and :data:`sb3_dream.presets.RL2DQN_PRESETS` ``["fast"]`` (the matching schedule changes) to RL2DQN.
+(``DREAM(bottleneck=False)``, the paper's ablation), ``rl2dqn``
+(:class:`~sb3_dream.rl2dqn.RL2DQN`, the paper's RL² baseline), ``import_dqn``
+(:class:`~sb3_dream.IMPORT`) and ``varibad`` (:class:`~sb3_dream.VariBAD`), and ``e_rl2dqn``,
+``e_import_dqn``, ``e_varibad``: the same with an instruction and rewards in the exploration
+episode (the paper's dashed lines). ``--preset paper`` keeps every default (the paper's);
+``--preset fast`` applies :data:`sb3_dream.presets.PRESETS` ``["fast"]`` to DREAM and the
+matching schedule changes (``RL2DQN_PRESETS``, ``IMPORT_PRESETS``, ``VARIBAD_PRESETS``) to the
+baselines; ``--preset laptop`` (DREAM only) adds the laptop preset's execution options.
 
 **Envs** are registered IDs with optional constructor arguments after colons, e.g.
 ``MetaBus-v0:variant=map`` or ``MetaCook-v0:n_exec_episodes=2``. ``split`` there sets the
