@@ -12,12 +12,13 @@
 
 from __future__ import annotations
 
-import numbers
 from typing import Optional, Tuple
 
 import torch as th
 from torch import nn
 from torch.nn import functional as F
+
+from dream_envs.checks import check_positive_int
 
 LSTMStates = Tuple[th.Tensor, th.Tensor]
 TD_LOSSES = ("mse", "huber")
@@ -151,8 +152,7 @@ def n_step_targets(
     :param n: steps summed before bootstrapping, an integer >= 1.
     :return: ``[B, T]``.
     """
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
-        raise ValueError(f"n must be an integer >= 1, got {n!r}")
+    n = check_positive_int("n", n)
     if n == 1:  # the one-step target, the same arithmetic bit for bit
         return double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
     best = next_q_online.argmax(dim=-1, keepdim=True)
@@ -164,7 +164,7 @@ def n_step_targets(
     r, d, m, v = pad(rewards * valid), pad(dones.to(rewards.dtype)), pad(valid), pad(bootstrap)
     returns, tail = th.zeros_like(rewards), th.zeros_like(rewards)
     alive = valid  # 1 where steps t .. t+k-1 are valid and non-terminal and step t+k is valid
-    for k in range(int(n)):
+    for k in range(n):
         returns = returns + gamma**k * alive * r[..., k : k + t_max]
         if k < n - 1:
             following = alive * (1.0 - d[..., k : k + t_max]) * m[..., k + 1 : k + 1 + t_max]
