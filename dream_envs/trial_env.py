@@ -207,8 +207,10 @@ class TrialEnv(gym.Env, ABC):
 
     def trial_spec(self) -> Dict[str, Any]:
         """The trial shape a model trained in this env relies on: the problem family and how its
-        problems are represented, the inner-episode horizon, the execution episodes per trial and
-        the splits' sizes (the split an env samples from is not part of it). The algorithms check
+        problems are represented, the inner-episode horizon, the execution episodes per trial,
+        the splits' sizes (the split an env samples from is not part of it) and whether the
+        exploration episode is reward-free (a model trained with an instruction and rewards there,
+        the paper's dashed lines, reads them in its inputs). The algorithms check
         it with :func:`check_trial_spec`: a VecEnv's sub-envs against each other, a model against
         the env it is given."""
         return {
@@ -218,6 +220,7 @@ class TrialEnv(gym.Env, ABC):
             "n_problems": int(self.n_problems),
             "problem_nvec": [int(n) for n in self.problem_nvec],
             "split_sizes": {split: len(self._split_problem_ids(split)) for split in self.splits},
+            "reward_free_exploration": bool(self.reward_free_exploration),
         }
 
     def problem_ids(self, split: Optional[str] = None) -> np.ndarray:

@@ -17,7 +17,10 @@ order drawn with ``--seed``), and each model's exploration episodes are drawn in
 side: the grid once, each trial's path in its own colour and shifted by a small offset, a dashed
 arc per bus ride, a star where a bus was ridden or a fridge opened, a ring where the map was read.
 The legend names each trial's problem and what its exploration found; the panel's title sums it up.
-``--oracle`` adds the env's scripted optimal explorer as a panel. The CSV holds every plotted point
+``--oracle`` adds the env's scripted optimal explorer as a panel. A model trained with an
+instruction and rewards in its exploration episodes (the runner's ``e_rl2dqn``, ``e_import_dqn``,
+``e_varibad``: the paper's dashed lines) plays in the env with ``reward_free_exploration=False``,
+as it was trained, on the same problems as the other panels. The CSV holds every plotted point
 (panel, trial, problem, step, cell, drawn position, action, what the step found).
 
 **Codes** (``--codes``, ``<out>_codes.png`` and ``.csv``; the first DREAM ``--model``): f(T) of every
@@ -151,15 +154,31 @@ def check_model_env(parser: argparse.ArgumentParser, path: str, model: Any, env:
         )
 
 
+def model_env(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, kwargs: Dict[str, Any], model: Any, env: gym.Env
+) -> gym.Env:
+    """``env``, or where ``model`` was trained with rewards in the exploration episode (the paper's
+    dashed lines: E-RL2 and the like; its saved trial spec says so) and ``--env-kwargs`` leave that
+    setting to the default, the same env with ``reward_free_exploration=False``: the model reads
+    the exploration episode's instruction and rewards, and its panel shows what it explores there."""
+    spec = getattr(model, "trial_spec", None) or {}
+    wanted = spec.get("reward_free_exploration")
+    if wanted is None or wanted == env.unwrapped.reward_free_exploration or "reward_free_exploration" in kwargs:
+        return env
+    return make_env(parser, args, {**kwargs, "reward_free_exploration": wanted})
+
+
 def draw_explorations(
-    args: argparse.Namespace, env: gym.Env, models: Dict[str, Any], out: pathlib.Path
+    args: argparse.Namespace, envs: Dict[str, gym.Env], models: Dict[str, Any], out: pathlib.Path
 ) -> Dict[str, Any]:
-    """Play each model's trials on the same problems, draw the panels and write the PNG and CSV."""
+    """Play each model's trials (in its env of ``envs``) on the same problems, draw the panels
+    and write the PNG and CSV."""
+    env = next(iter(envs.values()))
     problem_ids = held_out_problems(env, args.trials, args.seed)
     panels = {}
     for label, model in models.items():
-        agent = make_oracle(env) if model is None else as_trial_agent(model)
-        panels[label] = exploration_paths(env, agent, args.trials, args.seed, problem_ids)
+        agent = make_oracle(envs[label]) if model is None else as_trial_agent(model)
+        panels[label] = exploration_paths(envs[label], agent, args.trials, args.seed, problem_ids)
     variant = getattr(env.unwrapped, "variant", None)
     title = f"{args.env}{f' ({variant})' if variant else ''}: exploration episodes, {args.split} split"
     png, table = out.with_name(out.name + "_explorations.png"), out.with_name(out.name + "_explorations.csv")
@@ -208,14 +227,16 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         parser.error(str(error))
     env = make_env(parser, args, kwargs)
     models: Dict[str, Any] = {}
+    envs: Dict[str, gym.Env] = {}
     if args.oracle and not args.codes:
-        models["optimal (scripted)"] = None
+        models["optimal (scripted)"], envs["optimal (scripted)"] = None, env
     for label, path in model_paths:
         try:
             model = load_model(path)
         except ValueError as error:
             parser.error(f"--model {path}: {error}")
-        check_model_env(parser, path, model, env)
+        envs[label] = model_env(parser, args, kwargs, model, env)
+        check_model_env(parser, path, model, envs[label])
         models[label] = model
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -223,11 +244,12 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
         if args.codes:
             draw_codes(args, kwargs, models, out)
         else:
-            draw_explorations(args, env, models, out)
+            draw_explorations(args, envs, models, out)
     except (ValueError, ImportError) as error:
         parser.error(str(error))
     finally:
-        env.close()
+        for each in {id(e): e for e in [env, *envs.values()]}.values():
+            each.close()
 
 
 if __name__ == "__main__":

@@ -241,6 +241,39 @@ def test_the_script_draws_the_shipped_models(tmp_path, script_module, capsys):
     assert kinds.count("f") == 24 and kinds.count("g") == 6 and kinds.count("g_prefix") > 3
 
 
+def test_a_model_trained_with_rewarded_exploration_plays_in_that_env(tmp_path, script_module, capsys):
+    # E-RL2 (the paper's dashed line) sees an instruction and rewards while exploring: its panel is
+    # played with reward_free_exploration=False, beside a reward-free model on the same problems
+    from sb3_dream import RL2DQN
+
+    e_rl2 = RL2DQN(gym.make("MetaBus-v0", variant="map", reward_free_exploration=False), seed=0)
+    e_rl2.save(tmp_path / "e_rl2")
+    assert e_rl2.trial_spec["reward_free_exploration"] is False
+    out = tmp_path / "mixed"
+    script_module.main([
+        "--env-kwargs", "variant=map", "--trials", "2",
+        "--model", f"DREAM={DREAM_MAP}", "--model", f"E-RL2={tmp_path / 'e_rl2.zip'}", "--out", str(out),
+    ])  # fmt: skip
+    rows = read_csv(tmp_path / "mixed_explorations.csv")
+    problems = {p: {r[2] for r in rows[1:] if r[0] == p} for p in ("DREAM", "E-RL2")}
+    assert problems["DREAM"] == problems["E-RL2"] and len(problems["DREAM"]) == 2
+
+    parser = script_module.build_parser()
+    args = parser.parse_args(["--env-kwargs", "variant=map", "--model", "x", "--out", "o"])
+    env = gym.make("MetaBus-v0", variant="map", split="test")
+    played = script_module.model_env(parser, args, {"variant": "map"}, e_rl2, env)
+    assert played is not env and played.unwrapped.reward_free_exploration is False
+    assert played.unwrapped.split == "test" and played.unwrapped.variant == "map"
+    # asking for the reward-free env explicitly keeps it, and the model is refused there
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        script_module.main([
+            "--env-kwargs", "variant=map", "reward_free_exploration=True",
+            "--model", str(tmp_path / "e_rl2.zip"), "--out", str(out),
+        ])  # fmt: skip
+    assert "its reward_free_exploration is True, the model's is False" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

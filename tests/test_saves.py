@@ -117,6 +117,9 @@ def test_a_model_meets_only_envs_of_its_trial_shape(horizon_20_model, tmp_path):
         evaluate_meta(model, "MetaBus-v0", n_trials=2, env_kwargs={"variant": "map", "horizon": 30})
     with pytest.raises(ValueError, match="family is 'MetaCookEnv'"):
         evaluate_meta(model, "MetaCook-v0", n_trials=2)
+    # rewards and an instruction in the exploration episode are inputs a model was trained with or without
+    with pytest.raises(ValueError, match="reward_free_exploration is False, the model's is True"):
+        model.set_env(gym.make("MetaBus-v0", variant="map", reward_free_exploration=False))
     # what may differ: the split, and the execution episodes per trial at meta-test
     evaluate_meta(model, "MetaBus-v0", n_trials=2, split="train", n_exec_episodes=2, env_kwargs={"variant": "map"})
     DREAM.load(tmp_path / "model", env=gym.make("MetaBus-v0", variant="map", split="test"))
