@@ -150,6 +150,119 @@ def test_decoder_losses_equal_the_hand_computation(predict_states):
     assert z.grad[1, 2].abs().sum() == 0 and z.grad[0, 2].abs().sum() > 0
 
 
+def _random_batch(generator, B=12, T=6, n_states=(3, 5), n_actions=3, burn_in=0):
+    """Sequences of random lengths 0..T (some full, one empty), padded to T, and their loss mask
+    (the first ``burn_in`` steps of the odd sequences are burn-in: masked out)."""
+    lengths = th.randint(0, T + 1, (B,), generator=generator)
+    lengths[0], lengths[1] = T, 0
+    steps = th.arange(T)
+    mask = steps < lengths.unsqueeze(1)
+    mask[1::2] &= steps >= burn_in
+    obs = th.stack([th.randint(0, n, (B, T + 1), generator=generator) for n in n_states], dim=-1)
+    return SequenceReplayBufferSamples(
+        observations={"obs": obs},
+        actions=th.randint(0, n_actions, (B, T), generator=generator),
+        rewards=th.randn(B, T, generator=generator),
+        dones=th.zeros(B, T),
+        mask=mask.float(),
+        lengths=lengths,
+        lstm_states=None,
+        burn_in_mask=None,
+    )
+
+
+def _loss_and_gradients(decoder, z, batch, **kwargs):
+    """``(loss, reward_loss, state_loss)`` values, then the gradient of ``loss`` for z and every parameter."""
+    z = z.detach().requires_grad_(True)
+    decoder.zero_grad(set_to_none=True)
+    losses = varibad_decoder_loss(decoder, z, batch, **kwargs)
+    losses[0].backward()
+    values = [None if loss is None else loss.detach() for loss in losses]
+    return values, [z.grad] + [p.grad for p in decoder.parameters()]
+
+
+@pytest.mark.parametrize("predict_states", [True, False])
+@pytest.mark.parametrize("burn_in", [0, 2])
+@pytest.mark.parametrize("chunk_elements", [1, 2**10, 2**17])
+def test_chunked_decoder_loss_equals_the_dense_one(predict_states, burn_in, chunk_elements):
+    """The chunked loss (hand-derived backward, valid pairs only) against the dense reference:
+    the same values and the same gradient for z and for every parameter, with sequences of
+    every length (an empty one, full ones), burn-in, and chunks of one sequence up to all."""
+    th.manual_seed(1)
+    generator = th.Generator().manual_seed(burn_in)
+    space = gym.spaces.MultiDiscrete([3, 5])
+    decoder = TransitionDecoder(space, n_actions=3, z_dim=4, hidden_dim=16, predict_states=predict_states)
+    for _ in range(3):
+        batch = _random_batch(generator, burn_in=burn_in)
+        z = th.randn(12, 7, 4, generator=generator)
+        dense, dense_grads = _loss_and_gradients(decoder, z, batch, method="dense")
+        chunked, chunked_grads = _loss_and_gradients(decoder, z, batch, method="chunked", chunk_elements=chunk_elements)
+        assert (dense[2] is None) == (chunked[2] is None) == (not predict_states)
+        assert all(th.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(dense, chunked) if a is not None)
+        assert len(dense_grads) == len(chunked_grads) == 1 + len(list(decoder.parameters()))
+        for name, a, b in zip(["z"] + [n for n, _ in decoder.named_parameters()], dense_grads, chunked_grads):
+            assert a is not None and b is not None, name
+            assert th.allclose(a, b, rtol=1e-5, atol=1e-6), name
+        # the empty sequence and the prefixes past a sequence's length get no gradient
+        assert chunked_grads[0][1].abs().sum() == 0
+        past = th.arange(7) > batch.lengths.unsqueeze(1)
+        assert chunked_grads[0][past].abs().sum() == 0
+
+
+def test_chunked_decoder_loss_on_hand_batches_and_edge_cases():
+    th.manual_seed(0)
+    decoder = TransitionDecoder(gym.spaces.MultiDiscrete([3, 5]), n_actions=2, z_dim=4, hidden_dim=8)
+    batch, z = _hand_batch(), th.randn(2, 3, 4)
+    dense, dense_grads = _loss_and_gradients(decoder, z, batch, method="dense")
+    for method in ("auto", "chunked"):  # auto: chunked on CPU
+        values, grads = _loss_and_gradients(decoder, z, batch, method=method)
+        assert all(th.allclose(a, b, rtol=1e-5) for a, b in zip(dense, values))
+        assert all(th.allclose(a, b, rtol=1e-4, atol=1e-7) for a, b in zip(dense_grads, grads))
+    # nothing to decode: zero losses and zero gradients, as the dense form gives
+    empty = batch._replace(mask=th.zeros(2, 2), lengths=th.tensor([0, 0]))
+    for method in ("dense", "chunked"):
+        values, grads = _loss_and_gradients(decoder, z, empty, method=method)
+        assert all(v.item() == 0 for v in values) and all(g.abs().sum() == 0 for g in grads)
+    # a gradient through the targets (the state head's, here on the states as floats) and a
+    # second backward through the same graph agree with autograd's
+    decoder.zero_grad(set_to_none=True)
+    targets = th.randn(2, 2, 3, requires_grad=True)
+    weights = th.rand(2, 3, 2)
+    obs = batch.observations["obs"]
+    sums = decoder.pair_squared_errors(z, obs[:, :2], batch.actions, targets, weights, chunk_elements=1)
+    r_hat, s_hat = decoder.forward_pairs(z, obs[:, :2], batch.actions)
+    reference = (((th.cat([r_hat.unsqueeze(-1), s_hat], -1) - targets.unsqueeze(1)) ** 2) * weights.unsqueeze(-1))
+    reference = reference.sum((0, 1, 2))
+    assert th.allclose(sums, reference, rtol=1e-5)
+    coefs = th.randn(3)
+    (grad,) = th.autograd.grad((sums * coefs).sum(), targets, retain_graph=True)
+    (again,) = th.autograd.grad((sums * coefs).sum(), targets)
+    (expected,) = th.autograd.grad((reference * coefs).sum(), targets)
+    assert th.allclose(grad, expected, rtol=1e-4, atol=1e-6) and th.equal(grad, again)
+    with pytest.raises(ValueError, match="no gradient with respect to the pair weights"):
+        decoder.pair_squared_errors(z, obs[:, :2], batch.actions, targets, weights.requires_grad_(True))
+    with pytest.raises(ValueError, match="method must be one of"):
+        varibad_decoder_loss(decoder, z, batch, method="sparse")
+
+
+def test_the_update_uses_the_chunked_loss_on_cpu_and_either_method_trains_alike():
+    model = small_model(CueMemoryEnv(), learning_starts=10, latent_variance=0.0)
+    assert model.decoder_loss_method == "auto"
+    model.learn(40)
+    batch = model.replay_buffer._get_samples(np.arange(4))
+    grads = {}
+    for method in ("dense", "chunked"):
+        model.decoder_loss_method = method
+        loss, logged = model._loss(batch)
+        model.policy.optimizer.zero_grad()
+        loss.backward()
+        grads[method] = (loss.detach(), logged, [p.grad.clone() for p in model.policy.trained_parameters()])
+    (l1, log1, g1), (l2, log2, g2) = grads["dense"], grads["chunked"]
+    assert th.allclose(l1, l2, rtol=1e-5) and log1.keys() == log2.keys()
+    assert all(th.allclose(log1[k], log2[k], rtol=1e-5) for k in log1)
+    assert all(th.allclose(a, b, rtol=1e-4, atol=1e-6) for a, b in zip(g1, g2))
+
+
 def test_update_loss_is_td_plus_decoder_loss_and_z_is_sampled():
     model = small_model(CueMemoryEnv(), learning_starts=10, latent_variance=0.0, decoder_loss_coef=0.3)
     model.learn(40)
