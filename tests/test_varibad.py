@@ -275,9 +275,10 @@ def test_update_loss_is_td_plus_decoder_loss_and_z_is_sampled():
     recomputed = varibad_decoder_loss(model.policy.decoder, history, batch)[0]
     assert recomputed.item() == pytest.approx(decoder.item(), rel=1e-5)
     model.latent_variance = 1e-2
-    mu = th.zeros(20_000, 8)
+    mu = th.zeros(8, 20_000).t()  # strided like the LSTM's output
     z = model.sample_z(model.q_net, mu)
     assert z.std().item() == pytest.approx(0.1, rel=0.05) and abs(z.mean().item()) < 0.01
+    assert z.shape == mu.shape and not th.equal(z, model.sample_z(model.q_net, mu))  # fresh noise each call
 
 
 # ---------------------------------------------------------------------- SB3 integration and meta-test

@@ -221,7 +221,10 @@ class VariBAD(RL2DQN):
         """z ~ N(mu, nu^2 I), reparametrised (the gradient reaches mu)."""
         if self.latent_variance == 0:
             return mu
-        return mu + self.latent_variance**0.5 * th.randn_like(mu)
+        # Fresh noise in a contiguous tensor: mu comes from the LSTM transposed, and randn_like would
+        # keep its strides, where torch draws normals one at a time (about 10x slower on CPU).
+        noise = th.randn(mu.shape, dtype=mu.dtype, device=mu.device)
+        return mu + self.latent_variance**0.5 * noise
 
     def learn(
         self: SelfVariBAD,
