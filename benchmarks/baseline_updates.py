@@ -17,14 +17,8 @@ method, on the same model, in the same rounds.
     python benchmarks/baseline_updates.py --variants dense chunked --rounds 9
     python benchmarks/baseline_updates.py --algos VariBAD --variants dense chunked --profile 20
 
-The second printed, on 2 busy CPU cores (other jobs running; one torch thread)::
-
-    MetaBus-v0 variant=map, 1 torch thread(s), batch 32; medians of 9 interleaved rounds of 10 updates
-    entry                 ms/update   x first   (min - max)
-    RL2DQN                      7.5      1.00   (6.9 - 10.8)
-    IMPORT                     12.0      1.60   (11.3 - 13.4)
-    VariBAD[dense]             47.9      6.39   (37.3 - 53.3)
-    VariBAD[chunked]           18.6      2.49   (17.2 - 20.5)
+It prints one line per entry: ``ms/update`` (the median), ``x first`` and ``(min - max)`` over
+the rounds. Measured results are in docs/baselines.md ("IMPORT and VariBAD").
 
 ``--profile N`` then runs N more updates of each entry under ``torch.profiler`` and prints its
 operators by self CPU time (``--profile-rows`` rows).
