@@ -18,7 +18,7 @@ from sb3_dream.rl2dqn import RL2DQN  # noqa: E402
 from sb3_dream.import_dqn import IMPORT  # noqa: E402
 from sb3_dream.presets import IMPORT_PRESETS, PRESETS, RL2DQN_PRESETS, VARIBAD_PRESETS  # noqa: E402
 from sb3_dream.varibad import VariBAD  # noqa: E402
-from sb3_dream.zoo import MEASURED_ALGOS, SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
+from sb3_dream.zoo import LAPTOP_ALGOS, MEASURED_ALGOS, SETTINGS, ZOO_ALGOS, algorithms, hyperparams_path, register  # noqa: E402
 from sb3_dream.zoo.cli import enjoy_args, main, train_args  # noqa: E402
 from sb3_dream.zoo.hyperparams_opt import CONVERTERS, SAMPLERS  # noqa: E402
 
@@ -125,8 +125,23 @@ def test_measured_settings_are_the_fast_preset_and_valid_arguments(algo):
         for key, value in hyper.items():
             assert getattr(model, key) == value, (env_id, key)
     assert config["SignNav3D-v0"]["policy"] == POLICIES[algo].get("SignNav3D-v0", "DreamPolicy")
-    with pytest.raises(ValueError, match="settings='fast' is not valid; accepted values: 'paper', 'measured'"):
+    with pytest.raises(ValueError, match="settings='fast' is not valid; accepted values: 'paper', 'measured', 'laptop'"):
         hyperparams_path(algo, "fast")
+
+
+def test_laptop_settings_are_the_laptop_preset():
+    # rl-zoo3 reads policy_kwargs as a Python expression and everything else as YAML values
+    config = yaml.safe_load(hyperparams_path("dream", "laptop").read_text())
+    assert LAPTOP_ALGOS == ("dream",) and set(config) == {"MetaBus-v0", "MetaCook-v0"}
+    for env_id, params in config.items():
+        assert params["n_envs"] == 4 and params["policy"] == "DreamPolicy"
+        hyper = {k: v for k, v in params.items() if k not in ZOO_KEYS}
+        assert {**hyper, "policy_kwargs": eval(params["policy_kwargs"])} == PRESETS["laptop"], env_id
+        model = DREAM(params["policy"], env_id, buffer_size=50, execution_buffer_size=100, **PRESETS["laptop"])
+        assert model.execution_sampling == "episodes"
+    for algo in sorted(set(ZOO_ALGOS) - set(LAPTOP_ALGOS)):
+        with pytest.raises(ValueError, match=f"algo='{algo}' has no 'laptop' settings"):
+            hyperparams_path(algo, "laptop")
 
 
 @pytest.mark.parametrize("algo", sorted(set(ZOO_ALGOS) - set(MEASURED_ALGOS)))
@@ -146,11 +161,15 @@ def test_cli_settings_picks_the_packaged_file():
     assert "--settings" not in args and args[-2:] == ["-n", "5"]  # rl-zoo3 never sees the flag
     paper = train_args(["--algo", "rl2_dqn", "--settings=paper"])
     assert paper[:2] == ["--conf-file", str(hyperparams_path("rl2_dqn"))]
-    with pytest.raises(SystemExit, match="settings='fast' is not valid; accepted values: paper, measured"):
+    with pytest.raises(SystemExit, match="settings='fast' is not valid; accepted values: paper, measured, laptop"):
         train_args(["--algo", "dream", "--settings", "fast"])
     with pytest.raises(SystemExit, match="--settings picks the packaged --conf-file"):
         train_args(["--algo", "dream", "--settings", "measured", "--conf-file", "my.yml"])
-    assert SETTINGS == ("paper", "measured")
+    assert SETTINGS == ("paper", "measured", "laptop")
+    laptop = train_args(["--algo", "dream", "--settings", "laptop"])
+    assert laptop[:2] == ["--conf-file", str(hyperparams_path("dream", "laptop"))]
+    with pytest.raises(SystemExit, match="algo='rl2_dqn' has no 'laptop' settings"):
+        train_args(["--algo", "rl2_dqn", "--settings", "laptop"])
 
 
 def test_cli_defaults_put_first_so_user_flags_win():

@@ -40,8 +40,9 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
 ZOO_ALGOS = ("dream", "rl2_dqn", "import_dqn", "varibad")
-SETTINGS = ("paper", "measured")  # the packaged hyperparameter files
+SETTINGS = ("paper", "measured", "laptop")  # the packaged hyperparameter files
 MEASURED_ALGOS = ("dream", "rl2_dqn")  # the algorithms with a "measured" file (the README's runs)
+LAPTOP_ALGOS = ("dream",)  # the algorithms with a "laptop" file (sb3_dream.PRESETS["laptop"])
 
 
 def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
@@ -59,14 +60,19 @@ def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
 
     ``settings="paper"``: the paper's values (the constructors' defaults); ``"measured"``: the
     settings of the README's measured runs (the ``fast`` schedules and DREAM's options), for the
-    algorithms of :data:`MEASURED_ALGOS`.
+    algorithms of :data:`MEASURED_ALGOS`; ``"laptop"``: DREAM's ``PRESETS["laptop"]`` (the
+    Quickstart's settings), for the algorithms of :data:`LAPTOP_ALGOS`.
     """
     if algo not in ZOO_ALGOS:
         raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")
     if settings not in SETTINGS:
         raise ValueError(f"settings={settings!r} is not valid; accepted values: {', '.join(map(repr, SETTINGS))}")
-    if settings != "paper" and algo not in MEASURED_ALGOS:
-        raise ValueError(f"algo={algo!r} has no {settings!r} settings (no measured runs yet); use settings='paper'")
+    having = {"paper": ZOO_ALGOS, "measured": MEASURED_ALGOS, "laptop": LAPTOP_ALGOS}[settings]
+    if algo not in having:
+        raise ValueError(
+            f"algo={algo!r} has no {settings!r} settings (algorithms with them: {', '.join(map(repr, having))}); "
+            "use settings='paper'"
+        )
     return HYPERPARAMS_DIR / (f"{algo}.yml" if settings == "paper" else f"{algo}_{settings}.yml")
 
 
@@ -105,4 +111,4 @@ def register() -> None:
         zoo_exp_manager.TrialEvalCallback = callback
 
 
-__all__ = ["HYPERPARAMS_DIR", "MEASURED_ALGOS", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]
+__all__ = ["HYPERPARAMS_DIR", "LAPTOP_ALGOS", "MEASURED_ALGOS", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]

@@ -12,8 +12,8 @@ envs; a flag given on the command line always wins, as the defaults are put firs
 
 * ``train`` with ``--algo dream|rl2_dqn``: ``--conf-file`` defaults to the packaged
   hyperparameters (:func:`sb3_dream.zoo.hyperparams_path`), as rl-zoo3 looks only inside its own
-  package: the paper's, or with ``--settings measured`` (this wrapper's one flag of its own) those
-  of the README's measured runs. With a trial env and no ``--eval-env-kwargs``, the zoo's
+  package: the paper's, with ``--settings measured`` (this wrapper's one flag of its own) those
+  of the README's measured runs, with ``--settings laptop`` DREAM's ``PRESETS["laptop"]``. With a trial env and no ``--eval-env-kwargs``, the zoo's
   evaluation (``--eval-freq``) runs on the held-out problems: the eval env gets ``--env-kwargs``
   plus ``split:'test'``.
 * ``train --optimize --storage URL --study-name S``: the study is created (or found) before
@@ -43,6 +43,7 @@ rl-zoo3 with the algorithms {', '.join(ZOO_ALGOS)} and the trial envs of dream_e
 Examples:
   sb3-dream-zoo train --algo dream --env MetaBus-v0 -n 100000 --eval-freq 10000
   sb3-dream-zoo train --algo dream --env MetaCook-v0 --settings measured   # the README's runs
+  sb3-dream-zoo train --algo dream --env MetaBus-v0 --env-kwargs variant:"'map'" --settings laptop
   sb3-dream-zoo enjoy --algo dream --env MetaBus-v0 -n 400
   sb3-dream-zoo train --algo rl2_dqn --env MetaBus-v0 --optimize --n-trials 20 -n 50000
   sb3-dream-zoo train --algo dream --env MetaBus-v0 --optimize --storage sqlite:///s.db --study-name s
