@@ -9,7 +9,7 @@ that you supply; the script copies it to a temporary folder, applies the compati
 listed below (checked: each must match, or the script stops naming the file), and runs
 ``main.main()`` in this process.
 
-    python benchmarks/authors_speed.py --repo ~/src/dream --python /tmp/authors_speed/venv/bin/python
+    python benchmarks/authors_speed.py --repo ~/src/dream --python ~/authors-venv/bin/python
     python benchmarks/authors_speed.py --repo ~/src/dream --steps 3000 --warmup 1000 [--environment map]
 
 Ours, in the same sitting (its docs line: "paper hyperparameters: one exploration and one
@@ -35,7 +35,7 @@ the exploration agent's is the one with a reward relabeler). Neither wrapper cha
 
 **Install (Python 3.11, found to work beside torch 2.13.0; a separate venv):**
 
-    python3 -m venv /tmp/authors_speed/venv && . /tmp/authors_speed/venv/bin/activate
+    python3 -m venv ~/authors-venv && . ~/authors-venv/bin/activate
     pip install torch==2.13.0            # the CPU build here; never an unpinned torch
     pip install gym==0.16.0 tensorboard tqdm Pillow
 
