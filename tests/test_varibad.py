@@ -241,7 +241,7 @@ def test_chunked_decoder_loss_on_hand_batches_and_edge_cases():
     assert th.allclose(grad, expected, rtol=1e-4, atol=1e-6) and th.equal(grad, again)
     with pytest.raises(ValueError, match="no gradient with respect to the pair weights"):
         decoder.pair_squared_errors(z, obs[:, :2], batch.actions, targets, weights.requires_grad_(True))
-    with pytest.raises(ValueError, match="method must be one of"):
+    with pytest.raises(ValueError, match="method='sparse' is not valid; accepted values: 'auto', 'chunked', 'dense'"):
         varibad_decoder_loss(decoder, z, batch, method="sparse")
 
 

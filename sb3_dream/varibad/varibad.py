@@ -8,7 +8,7 @@ import torch as th
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
-from dream_envs.checks import check_non_negative
+from dream_envs.checks import check_choice, check_non_negative
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
 from sb3_dream.common.conditioned import ConditionedQNetwork, conditioned_double_dqn_loss
 from sb3_dream.rl2dqn.rl2dqn import RL2DQN
@@ -49,13 +49,12 @@ def varibad_decoder_loss(
         at a time, valid pairs only, nothing of size ``B x P x T x H`` kept for the backward) or
         ``"dense"`` (:meth:`~TransitionDecoder.forward_pairs` on every pair at once, through
         autograd: the reference); the same values and gradients, to float rounding. ``"auto"``:
-        chunked on CPU (about 5x faster on MetaBus, one thread), dense elsewhere (the chunk plan
-        reads the mask on the host, which would make a GPU wait).
+        chunked on CPU (where the dense form is bound by memory traffic), dense elsewhere (the
+        chunk plan reads the mask on the host, which would make a GPU wait).
     :param chunk_elements: the chunked method's chunk size (hidden activations).
     :return: ``(loss, reward_loss, state_loss or None)``.
     """
-    if method not in DECODER_LOSS_METHODS:
-        raise ValueError(f"method must be one of {DECODER_LOSS_METHODS}, got {method!r}")
+    check_choice("method", method, DECODER_LOSS_METHODS)
     T = batch.actions.shape[1]
     obs = batch.observations["obs"]
     prefixes = th.arange(T + 1, device=z.device)

@@ -38,11 +38,15 @@ from typing import Dict, Type
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from dream_envs.checks import check_choice
+
 HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
 ZOO_ALGOS = ("dream", "rl2_dqn", "import_dqn", "varibad")
-SETTINGS = ("paper", "measured", "laptop")  # the packaged hyperparameter files
 MEASURED_ALGOS = ("dream", "rl2_dqn")  # the algorithms with a "measured" file (the README's runs)
 LAPTOP_ALGOS = ("dream",)  # the algorithms with a "laptop" file (sb3_dream.PRESETS["laptop"])
+#: the packaged hyperparameter files: each setting and the algorithms that have it
+SETTINGS_ALGOS = {"paper": ZOO_ALGOS, "measured": MEASURED_ALGOS, "laptop": LAPTOP_ALGOS}
+SETTINGS = tuple(SETTINGS_ALGOS)
 
 
 def algorithms() -> Dict[str, Type[BaseAlgorithm]]:
@@ -63,11 +67,8 @@ def hyperparams_path(algo: str, settings: str = "paper") -> pathlib.Path:
     algorithms of :data:`MEASURED_ALGOS`; ``"laptop"``: DREAM's ``PRESETS["laptop"]`` (the
     Quickstart's settings), for the algorithms of :data:`LAPTOP_ALGOS`.
     """
-    if algo not in ZOO_ALGOS:
-        raise ValueError(f"algo={algo!r} is not valid; accepted values: {', '.join(map(repr, ZOO_ALGOS))}")
-    if settings not in SETTINGS:
-        raise ValueError(f"settings={settings!r} is not valid; accepted values: {', '.join(map(repr, SETTINGS))}")
-    having = {"paper": ZOO_ALGOS, "measured": MEASURED_ALGOS, "laptop": LAPTOP_ALGOS}[settings]
+    check_choice("algo", algo, ZOO_ALGOS)
+    having = SETTINGS_ALGOS[check_choice("settings", settings, SETTINGS)]
     if algo not in having:
         raise ValueError(
             f"algo={algo!r} has no {settings!r} settings (algorithms with them: {', '.join(map(repr, having))}); "
@@ -111,4 +112,14 @@ def register() -> None:
         zoo_exp_manager.TrialEvalCallback = callback
 
 
-__all__ = ["HYPERPARAMS_DIR", "LAPTOP_ALGOS", "MEASURED_ALGOS", "SETTINGS", "ZOO_ALGOS", "algorithms", "hyperparams_path", "register"]
+__all__ = [
+    "HYPERPARAMS_DIR",
+    "LAPTOP_ALGOS",
+    "MEASURED_ALGOS",
+    "SETTINGS",
+    "SETTINGS_ALGOS",
+    "ZOO_ALGOS",
+    "algorithms",
+    "hyperparams_path",
+    "register",
+]
