@@ -13,9 +13,9 @@ envs; a flag given on the command line always wins, as the defaults are put firs
 * ``train`` with ``--algo dream|rl2_dqn``: ``--conf-file`` defaults to the packaged
   hyperparameters (:func:`sb3_dream.zoo.hyperparams_path`), as rl-zoo3 looks only inside its own
   package: the paper's, with ``--settings measured`` (this wrapper's one flag of its own) those
-  of the README's measured runs, with ``--settings laptop`` DREAM's ``PRESETS["laptop"]``. With a trial env and no ``--eval-env-kwargs``, the zoo's
-  evaluation (``--eval-freq``) runs on the held-out problems: the eval env gets ``--env-kwargs``
-  plus ``split:'test'``.
+  of the README's measured runs, with ``--settings laptop`` DREAM's ``PRESETS["laptop"]``. With a
+  trial env and no ``--eval-env-kwargs``, the zoo's evaluation (``--eval-freq``) runs on the
+  held-out problems: the eval env gets ``--env-kwargs`` plus ``split:'test'``.
 * ``train --optimize --storage URL --study-name S``: the study is created (or found) before
   rl-zoo3 runs, retrying while other workers create the same database, so that several workers,
   on one machine or many, add trials to one study. ``train --best-trial`` (this wrapper's flag,
