@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from typing import Callable, Dict, List, Tuple
 
 import gymnasium as gym
@@ -37,6 +36,7 @@ import torch as th
 import dream_envs  # noqa: F401  (registers the envs)
 from sb3_dream import IMPORT, RL2DQN, VariBAD
 from sb3_dream.varibad.varibad import DECODER_LOSS_METHODS
+from timing import interleaved_rounds
 
 ALGOS = {"RL2DQN": RL2DQN, "IMPORT": IMPORT, "VariBAD": VariBAD}
 
@@ -80,14 +80,12 @@ def main() -> None:
     th.set_num_threads(args.threads)
     models = {algo: build(algo, args.env, args.variant, args.fill, args.seed) for algo in args.algos}
     todo = entries(models, args.variants)
-    times: Dict[str, List[float]] = {name: [] for name, _ in todo}
-    for _ in range(args.rounds):
-        for name, set_up in todo:
-            set_up()
-            model = models[name.split("[")[0]]
-            start = time.perf_counter()
-            model.train(gradient_steps=args.updates, batch_size=model.batch_size)
-            times[name].append((time.perf_counter() - start) / args.updates * 1e3)
+
+    def run(model: RL2DQN) -> Callable[[], None]:
+        return lambda: model.train(gradient_steps=args.updates, batch_size=model.batch_size)
+
+    timed = [(name, run(models[name.split("[")[0]]), set_up) for name, set_up in todo]
+    times = interleaved_rounds(timed, args.rounds, args.updates)
     print(f"{args.env} variant={args.variant}, {args.threads} torch thread(s), batch "
           f"{next(iter(models.values())).batch_size}; medians of {args.rounds} interleaved rounds of "
           f"{args.updates} updates")

@@ -43,6 +43,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from sb3_dream import DREAM
 from sb3_dream.common.embedders import ImageEmbedder
 from sb3_dream.dream import updates
+from timing import interleaved_rounds, summary
 
 
 def timed(obj, name: str, totals: dict, key: str, device: th.device) -> None:
@@ -210,20 +211,19 @@ def compare_updates(
         if full_explorations:
             fill_full_explorations(model, env_id, env_kwargs, seed)
         models[name] = model
-    times: dict = defaultdict(list)
-    for _ in range(rounds):
-        for n_threads in threads:
-            th.set_num_threads(n_threads)
-            for name, model in models.items():
-                start = time.perf_counter()
-                model.train(n_updates, model.batch_size)
-                times[name, n_threads].append((time.perf_counter() - start) / n_updates * 1e3)
+    keys = [(name, n_threads) for n_threads in threads for name in models]
+    entries = [
+        (f"{name}@{n_threads}", lambda m=models[name]: m.train(n_updates, m.batch_size),
+         lambda n=n_threads: th.set_num_threads(n))
+        for name, n_threads in keys
+    ]
+    times = interleaved_rounds(entries, rounds, units=n_updates)
     print(f"ms per update on {env_id}, median of {rounds} interleaved rounds of {n_updates} updates (min - max)")
     width = max(len(name) for name in variants) + 2
     print(f"{'variant':>{width}}{'threads':>9}{'median':>9}{'range':>16}")
-    for (name, n_threads), values in times.items():
-        span = f"{min(values):.1f} - {max(values):.1f}"
-        print(f"{name:>{width}}{n_threads:>9}{statistics.median(values):>9.1f}{span:>16}")
+    for name, n_threads in keys:
+        median, low, high = summary(times[f"{name}@{n_threads}"])
+        print(f"{name:>{width}}{n_threads:>9}{median:>9.1f}{f'{low:.1f} - {high:.1f}':>16}")
 
 
 def _lstm_flops(input_shape, w_ih_shape, w_hh_shape) -> int:

@@ -12,8 +12,6 @@ every B / 8 env steps: the paper's 32 every 4).
 from __future__ import annotations
 
 import argparse
-import time
-from typing import Dict, List
 
 import numpy as np
 import torch as th
@@ -22,6 +20,7 @@ from stable_baselines3.common.env_util import make_vec_env
 import dream_envs  # noqa: F401  (registers the envs)
 from sb3_dream import DREAM, PRESETS
 from sb3_dream.experiments import parse_kwargs
+from timing import interleaved_rounds
 
 
 def main() -> None:
@@ -45,21 +44,17 @@ def main() -> None:
     model = DREAM(env, **PRESETS[args.preset], learning_starts=args.fill + 1, seed=args.seed)
     model.learn(args.fill)
     model.exploration_learning_starts = model.execution_learning_starts = 0
-    times: Dict[int, List[float]] = {b: [] for b in args.batch_sizes}
     for b in args.batch_sizes:
         model.train(2, b)  # warm-up: first-call allocations
-    for _ in range(args.rounds):
-        for b in args.batch_sizes:
-            start = time.perf_counter()
-            model.train(args.updates, b)
-            times[b].append((time.perf_counter() - start) / args.updates)
+    entries = [(str(b), lambda b=b: model.train(args.updates, b)) for b in args.batch_sizes]
+    times = {int(name): values for name, values in interleaved_rounds(entries, args.rounds, args.updates).items()}
     base = args.batch_sizes[0]
-    base_ms = np.median(times[base]) * 1e3
+    base_ms = np.median(times[base])
     print(f"{args.env} {env_kwargs or ''} preset {args.preset}, {args.threads} torch thread(s), "
           f"parallel updates {model.updates_in_parallel}; medians of {args.rounds} interleaved rounds")
     print(f"{'batch':>6} {'ms/update':>10} {'us/sample':>10} {'x batch ' + str(base):>12} {'cost per env step':>18}")
     for b in args.batch_sizes:
-        ms = np.median(times[b]) * 1e3
+        ms = np.median(times[b])
         per_step = (ms / base_ms) * (base / b)  # same samples per env step: an update every b / 8 env steps
         print(f"{b:>6} {ms:>10.1f} {ms / b * 1e3:>10.0f} {ms / base_ms:>12.2f} {per_step:>18.2f}")
 

@@ -9,4 +9,14 @@ from sb3_dream.rl2dqn import RL2DQN
 from sb3_dream.varibad import VariBAD
 from sb3_dream.version import __version__
 
-__all__ = ["DREAM", "DreamPolicy", "IMPORT", "MetaEvalCallback", "PRESETS", "RL2DQN", "VariBAD", "evaluate_meta", "__version__"]
+__all__ = [
+    "DREAM",
+    "DreamPolicy",
+    "IMPORT",
+    "MetaEvalCallback",
+    "PRESETS",
+    "RL2DQN",
+    "VariBAD",
+    "evaluate_meta",
+    "__version__",
+]

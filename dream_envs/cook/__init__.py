@@ -8,7 +8,21 @@
 
 # The grid actions and the object codes are MetaBus's: this package's names for them.
 from dream_envs.bus import ACTION_NAMES as GRID_ACTION_NAMES
-from dream_envs.bus import DOWN, DROP, END_EPISODE, FRIDGE, LEFT, MOVES, N_ACTIONS, NO_OBJECT, NOOP, PICKUP, POT, RIGHT, UP
+from dream_envs.bus import (
+    DOWN,
+    DROP,
+    END_EPISODE,
+    FRIDGE,
+    LEFT,
+    MOVES,
+    N_ACTIONS,
+    NO_OBJECT,
+    NOOP,
+    PICKUP,
+    POT,
+    RIGHT,
+    UP,
+)
 from dream_envs.bus import RIDE as RIDE_BUS
 from dream_envs.cook.env import MetaCookEnv
 from dream_envs.cook.kitchen import (

@@ -76,4 +76,5 @@ __all__ = [
     "exploration_report",
     "opengl_available",
     "sign_colour_from_image",
+    "sign_image",
 ]

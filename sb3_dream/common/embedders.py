@@ -344,7 +344,11 @@ def make_state_embedder(
         return emb
     if isinstance(space, spaces.Box) and is_image_space(space, check_channels=False, normalized_image=False):
         return ImageEmbedder(
-            space, channels=image_channels, embed_dim=image_embed_dim, normalize=normalize_images, downsample=image_downsample
+            space,
+            channels=image_channels,
+            embed_dim=image_embed_dim,
+            normalize=normalize_images,
+            downsample=image_downsample,
         )
     if isinstance(space, (spaces.Box, spaces.MultiBinary)):
         return BoxMLPEmbedder(space.shape, hidden_dims)

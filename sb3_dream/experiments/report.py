@@ -204,7 +204,8 @@ def write_summary(rows: Sequence[Dict[str, Any]], out: pathlib.Path) -> str:
         pearl = f"{row['pearl_ub']:.3f}" if "pearl_ub" in row else "-"
         steps = f"{row['env_steps']:,}" if row["seeds"] else "-"
         clock = _format_seconds(row["wall_clock_s"]) if row["seeds"] else "-"
-        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, pearl, steps, clock]
+        cells = [row["env"], row["algo"], row["split"], str(row["seeds"]), ret, last_tenth, optimal, pearl]
+        cells += [steps, clock]
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines) + "\n"
     with atomic_target(out / "summary.md", "md") as tmp:
