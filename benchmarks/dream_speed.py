@@ -40,7 +40,7 @@ import numpy as np
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_dream import DREAM
+from sb3_dream import DREAM, PRESETS
 from sb3_dream.common.embedders import ImageEmbedder
 from sb3_dream.dream import updates
 from timing import interleaved_rounds, summary
@@ -132,6 +132,8 @@ VARIANTS = {
     "episodes": {"execution_sampling": "episodes"},  # whole execution episodes per update
     # the authors' final execution Q, an LSTM over each execution episode (needs whole episodes)
     "recurrent-execution": {"execution_sampling": "episodes", "policy_kwargs": {"execution_recurrent": True}},
+    # PRESETS["laptop"]'s networks and sampling (its schedules are the benchmark's own)
+    "laptop": {k: v for k, v in PRESETS["laptop"].items() if k in ("policy_kwargs", "execution_sampling")},
     # image envs (SignNav3D-v0): every CNN sees the frames average-pooled 2x2
     "downsample2": {"policy_kwargs": {"image_downsample": 2}},
     # image envs: every position's frame through the CNNs (before distinct frames; not a DREAM kwarg)
@@ -265,7 +267,7 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
     model.learn(warmup)
     frames = count_cnn_frames(model)  # image envs: the frames each CNN pass takes
     model.policy.set_training_mode(True)
-    buffers, own = model.replay_buffer, model.execution_target_z == "own"
+    buffers = model.replay_buffer
     times: dict = defaultdict(list)
     flops: dict = defaultdict(list)
 
@@ -289,11 +291,10 @@ def update_parts(env_id: str, env_kwargs: dict, variant: str, n_updates: int, wa
         # Every 10th update is counted instead of timed (the counter slows what it counts); each
         # part runs once either way, so the networks follow the same updates.
         part = counted_part if i % 10 == 9 else timed_part
-        z = part("worker: target decoder's z", lambda: updates.target_decoder_z(model.policy, traj)) if own else None
+        target_q = part("worker: execution targets", lambda: updates.execution_target_q(model, exe, traj))
         codes = part("worker: reward pass (f, g)", lambda: updates.reward_codes(model.policy, explored))
         part("worker: exploration update", lambda: updates.exploration_update(model, explored, *codes))
-        target = None if z is None else (lambda: z)
-        part("main: execution losses + step", lambda: updates.execution_update(model, exe, traj, target_z_g=target))
+        part("main: execution losses + step", lambda: updates.execution_update(model, exe, traj, lambda: target_q))
     print(f"ms per part on {env_id} ({variant}), median of {n_updates} updates, one thread")
     print(f"{'':>32}{'ms':>8}{'GFLOP':>8}{'GFLOP/s':>9}")
     ms = {k: statistics.median(v) for k, v in times.items()}

@@ -479,19 +479,29 @@ def test_execution_sampling_is_saved_and_checked(tmp_path):
         DREAM("MetaBus-v0", execution_sampling="trials")
 
 
+RECURRENT_EXECUTION = {
+    "execution_sampling": "episodes",
+    "policy_kwargs": {"execution_recurrent": True, "execution_hidden_sizes": (128, 128)},
+}
+
+
+@pytest.mark.parametrize("networks", [{}, RECURRENT_EXECUTION], ids=["paper", "recurrent-execution"])
 @pytest.mark.parametrize("target_z", EXECUTION_TARGET_Z)
-def test_parallel_updates_compute_what_sequential_updates_do(tmp_path, target_z):
-    # the worker thread runs the no-gradient passes (target decoder, reward codes) and the
-    # exploration update beside the execution update: same inputs, same order of parameter changes
+def test_parallel_updates_compute_what_sequential_updates_do(tmp_path, target_z, networks):
+    # the worker thread runs the no-gradient passes (the target networks' Q^exe(s', z), the reward
+    # codes) and the exploration update beside the execution update: same inputs, same order of
+    # parameter changes
+    kwargs = {**FAST, **networks}
+
     def trained(parallel: bool) -> DREAM:
-        model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, execution_target_z=target_z, **FAST)
+        model = DREAM("MetaBus-v0", seed=3, parallel_updates=parallel, execution_target_z=target_z, **kwargs)
         model.learn(400)
         return model
 
     sequential, parallel = trained(False), trained(True)
     assert parallel._update_thread is not None and sequential._update_thread is None
     assert parallel._n_updates == sequential._n_updates > 0
-    untrained = DREAM("MetaBus-v0", seed=3, **FAST).policy.state_dict()
+    untrained = DREAM("MetaBus-v0", seed=3, **kwargs).policy.state_dict()
     for name, value in sequential.policy.state_dict().items():
         assert th.equal(value, parallel.policy.state_dict()[name]), name
     for net in ("exploration_q", "execution_q", "decoder"):  # both updates ran

@@ -47,18 +47,34 @@ def target_decoder_z(policy: DreamPolicy, traj: TrajectoryBatch) -> th.Tensor:
     return policy.decoder_target(trajectory_states(traj), traj.actions, traj.lengths)
 
 
+@th.no_grad()
+def execution_target_q(model: "DREAM", exe: ExecutionBatch, traj: TrajectoryBatch) -> th.Tensor:
+    """The target Q^exe's values at each transition's s' [2B, A], for both halves of the execution
+    loss: rows [0, B) with the target z of the loss with z = g (``execution_target_z``), rows
+    [B, 2B) with the target encoder's F(mu). Target networks only, so another thread can compute it
+    while the execution update runs its forward pass."""
+    policy, owner = model.policy, exe.trajectories
+    z_f_target = policy.encoder_target(traj.problem_features)[owner]
+    if model.execution_target_z == "own":
+        z_target = th.cat([target_decoder_z(policy, traj)[owner], z_f_target])
+    else:  # "encoder": the authors' code, no decoder pass
+        z_target = z_f_target.repeat(2, 1)
+    target_net = policy.execution_q_target
+    return target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
+
+
 def execution_update(
     model: "DREAM",
     exe: ExecutionBatch,
     traj: TrajectoryBatch,
-    target_z_g: Optional[Callable[[], th.Tensor]] = None,
+    target_q: Optional[Callable[[], th.Tensor]] = None,
     before_step: Optional[Callable[[], Any]] = None,
 ) -> Dict[str, float]:
     """One step on the execution DDQN with z from g and from F, the bottleneck and the decoder loss
     (Equations 2-4), all on the same execution samples (Appendix A).
 
     One decoder pass gives g of every prefix of the batch's trajectories ``traj``; transition j
-    reads trajectory ``exe.trajectories[j]``. ``target_z_g`` gives the target decoder's z when
+    reads trajectory ``exe.trajectories[j]``. ``target_q`` gives :func:`execution_target_q` when
     another thread computes it; ``before_step`` is called before the optimizer changes the networks.
     """
     policy, net = model.policy, model.policy.execution_q
@@ -74,14 +90,7 @@ def execution_update(
     q = net.q_values(inputs.repeat(2, 1), z).gather(1, exe.actions.repeat(2)[:, None]).squeeze(1)
     with th.no_grad():
         next_online = net.q_values(next_inputs.repeat(2, 1), z)
-        z_f_target = policy.encoder_target(traj.problem_features)[owner]
-        if model.execution_target_z == "own":
-            z_g_target = target_z_g() if target_z_g is not None else target_decoder_z(policy, traj)
-            z_target = th.cat([z_g_target[owner], z_f_target])
-        else:  # "encoder": the authors' code, no decoder pass
-            z_target = z_f_target.repeat(2, 1)
-        target_net = policy.execution_q_target
-        next_target = target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
+    next_target = target_q() if target_q is not None else execution_target_q(model, exe, traj)
     loss_traj, loss_prob = losses.execution_td_losses(
         q,
         next_online,
@@ -148,19 +157,18 @@ def parallel_update(
     """``parallel_updates``: the no-gradient passes and the exploration update run in a second
     thread beside the execution update, with the same inputs, so with the same results.
 
-    The worker runs, in order, the target decoder's pass for the execution targets (with
-    ``execution_target_z="own"``), the reward pass of the current f and g over the exploration
-    batch, and the exploration DDQN step. The execution update waits for the first before its
-    targets, and for the second before its optimizer step changes f and g (their networks and
-    optimizers are otherwise disjoint).
+    The worker runs, in order, the target networks' pass for the execution targets
+    (:func:`execution_target_q`: the target decoder's z with ``execution_target_z="own"``, then the
+    target Q^exe at s'), the reward pass of the current f and g over the exploration batch, and the
+    exploration DDQN step. The execution update waits for the first before its TD errors, and for
+    the second before its optimizer step changes f and g (their networks and optimizers are
+    otherwise disjoint).
     """
     if model._update_thread is None:
         model._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
     worker, policy = model._update_thread, model.policy
-    target_z_g = worker.submit(target_decoder_z, policy, traj) if model.execution_target_z == "own" else None
+    target_q = worker.submit(execution_target_q, model, exe, traj)
     codes = worker.submit(reward_codes, policy, explored)
     exploration = worker.submit(lambda: exploration_update(model, explored, *codes.result()))
-    stats = execution_update(
-        model, exe, traj, target_z_g=None if target_z_g is None else target_z_g.result, before_step=codes.result
-    )
+    stats = execution_update(model, exe, traj, target_q=target_q.result, before_step=codes.result)
     return {**exploration.result(), **stats}
