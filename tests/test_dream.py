@@ -294,6 +294,23 @@ def test_image_trials_train_and_meta_test():
     assert result.returns.shape == (1, 1) and -1.0 <= result.mean <= 1.0
 
 
+def test_decoder_hidden_size_sets_the_decoders_lstm_learns_and_is_saved(tmp_path):
+    model = DREAM("MetaBus-v0", seed=0, policy_kwargs=dict(decoder_hidden_size=48), **FAST)
+    for decoder in (model.policy.decoder, model.policy.decoder_target):
+        assert decoder.lstm.hidden_size == 48 and decoder.head[0].in_features == 48
+    assert model.policy.encoder.out.out_features == model.policy.decoder.head[-1].out_features == 64  # z_dim kept
+    before = model.policy.decoder.lstm.weight_hh_l0.clone()
+    model.learn(400)
+    assert model._n_updates > 0 and not th.equal(before, model.policy.decoder.lstm.weight_hh_l0)
+    model.save(tmp_path / "m.zip")
+    loaded = DREAM.load(tmp_path / "m.zip")
+    assert loaded.policy.decoder_hidden_size == 48 and loaded.policy.decoder.lstm.hidden_size == 48
+    assert DREAM("MetaBus-v0").policy.decoder.lstm.hidden_size == 128  # the paper's decoder by default
+    for bad in (0, 64.0, True):
+        with pytest.raises(ValueError, match=f"decoder_hidden_size must be an integer >= 1, got {bad!r}"):
+            DREAM("MetaBus-v0", policy_kwargs=dict(decoder_hidden_size=bad))
+
+
 @pytest.mark.opengl
 def test_image_downsample_pools_every_networks_frames_and_is_saved(tmp_path):
     small = dict(exploration_learning_starts=2, execution_learning_starts=2, buffer_size=20, execution_buffer_size=200)

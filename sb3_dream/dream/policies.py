@@ -65,8 +65,9 @@ class TrajectoryDecoder(nn.Module):
     """g_omega(tau^exp) for every prefix of tau^exp = (s_0, a_0, s_1, ..., s_T).
 
     Each transition (s_t, a_t, s_{t+1}) is embedded as [e(s_t); e(a_t); e(s_{t+1})] -> 128 -> 64
-    (ReLU); an LSTM of 128 runs over the transitions; a zero "empty prefix" output is prepended so
-    that one pass yields g(tau_:0) ... g(tau_:T); an MLP 128 -> z_dim maps each to z.
+    (ReLU); an LSTM of ``hidden_size`` (the paper's 128) runs over the transitions; a zero "empty
+    prefix" output is prepended so that one pass yields g(tau_:0) ... g(tau_:T); an MLP 128 -> z_dim
+    maps each to z.
     """
 
     def __init__(
@@ -374,6 +375,11 @@ class DreamPolicy(BasePolicy):
     (SignNav3D-v0): every network's CNN sees each frame average-pooled by that factor (2: 80 x 60 ->
     40 x 30; see :class:`~sb3_dream.common.embedders.ImageEmbedder`). The CNNs are almost all of an
     update's arithmetic on SignNav3D, so pooling them cuts an update's cost (docs/speed.md).
+
+    ``decoder_hidden_size`` (default 128, the paper's decoder) is the size of the decoder's LSTM
+    over the exploration trajectory. The decoder's forward and backward passes are the largest part
+    of the execution update on the grid worlds, so a smaller LSTM (64) makes an update cheaper
+    (docs/speed.md); the bottleneck's z keeps its ``z_dim``.
     """
 
     EXECUTION_LSTM_SIZE = 64  # the authors' LSTMCell over the execution episode
@@ -392,6 +398,7 @@ class DreamPolicy(BasePolicy):
         execution_recurrent: bool = False,
         execution_weight_decay: float = 0.0,
         image_downsample: int = 1,
+        decoder_hidden_size: int = 128,
         horizon: Optional[int] = None,
         optimizer_class: Type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: Optional[Dict[str, Any]] = None,
@@ -413,8 +420,13 @@ class DreamPolicy(BasePolicy):
                 f"is {observation_space['obs']}: leave it at 1"
             )
         self.encoder = ProblemEncoder(self.problem_nvec, z_dim)
+        self.decoder_hidden_size = check_positive_int("decoder_hidden_size", decoder_hidden_size)
         self.decoder = TrajectoryDecoder(
-            observation_space["obs"], n_actions, z_dim, image_downsample=self.image_downsample
+            observation_space["obs"],
+            n_actions,
+            z_dim,
+            hidden_size=self.decoder_hidden_size,
+            image_downsample=self.image_downsample,
         )
         time_inputs = {"execution_time_input": execution_time_input, "exploration_time_input": exploration_time_input}
         flags = {
@@ -508,6 +520,7 @@ class DreamPolicy(BasePolicy):
             execution_recurrent=self.execution_recurrent,
             execution_weight_decay=self.execution_weight_decay,
             image_downsample=self.image_downsample,
+            decoder_hidden_size=self.decoder_hidden_size,
             horizon=self.horizon,
             lr_schedule=self._dummy_schedule,
         )
