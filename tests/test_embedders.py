@@ -36,6 +36,13 @@ def test_multidiscrete_embedder_runs_distinct_values_once_with_the_same_result()
         assert (g - g_ref).abs().max() <= 1e-5 * g_ref.abs().max()
 
 
+def test_multidiscrete_embedder_takes_an_empty_batch():
+    emb = MultiDiscreteEmbedder(np.array([9, 9, 5]))
+    for batch in [(0,), (0, 4), (4, 0)]:
+        out = emb(th.zeros(*batch, 3, dtype=th.long))
+        assert out.shape == (*batch, emb.embed_dim)
+
+
 def _reference_cnn(emb: ImageEmbedder, frames: th.Tensor) -> th.Tensor:
     """The paper's CNN written out layer by layer on channel-first float frames."""
     x = frames.float() / 255.0

@@ -144,7 +144,7 @@ class MultiDiscreteEmbedder(nn.Module):
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         flat, batch_shape = _flatten_batch(x, self.event_shape)
-        values = flat.reshape(flat.shape[0], -1).long()
+        values = flat.reshape(flat.shape[0], self.offsets.numel()).long()  # explicit width: batches may be empty
         if self.distinct_keys and values.shape[0] >= self.dedup_min_rows:
             keys, inverse = th.unique(values @ self.radix, return_inverse=True)
             distinct = th.empty(len(keys), values.shape[1], dtype=th.long, device=values.device)
