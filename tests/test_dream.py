@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import copy
+import json
+import pathlib
 import pickle
+import zipfile
 
 import gymnasium as gym
 import numpy as np
@@ -1026,7 +1029,6 @@ def test_sb3_argument_names_keep_sb3s_meaning():
         DREAM("MetaBus-v0", train_freq=(1, "episode"))
     for name, value, equivalent in [
         ("exploration_fraction", 0.1, "eps_decay_steps"),
-        ("tau", 0.5, "target_update_interval"),
         ("replay_buffer_class", None, "execution_buffer_size"),
         ("action_noise", None, "epsilon-greedy"),
     ]:
@@ -1038,6 +1040,38 @@ def test_sb3_argument_names_keep_sb3s_meaning():
         DREAM("MetaBus-v0", learning_starts=-1)
     with pytest.raises(ValueError, match="pass z_dim=8 to DREAM"):
         DREAM("MetaBus-v0", policy_kwargs=dict(z_dim=8))
+
+
+def test_tau_is_sb3s_polyak_coefficient_for_every_target(tmp_path):
+    model = DREAM("MetaBus-v0", seed=0, **{**FAST, "tau": 0.25, "target_update_interval": 1})
+    policy = model.policy
+    with th.no_grad():
+        for net in policy.onlines():
+            for param in net.parameters():
+                param.add_(1.0)
+    targets = [[t.clone() for t in target.parameters()] for target in policy.targets()]
+    policy.sync_targets(model.tau)  # each target moves a quarter of the way to its online network
+    for online, target, old in zip(policy.onlines(), policy.targets(), targets):
+        for o, t, t_old in zip(online.parameters(), target.parameters(), old):
+            th.testing.assert_close(t, 0.75 * t_old + 0.25 * o)
+    model.learn(400)
+    assert model._n_updates > 0
+    model.save(tmp_path / "soft.zip")
+    assert DREAM.load(tmp_path / "soft.zip").tau == 0.25
+    assert DREAM.load(tmp_path / "soft.zip", tau=0.5).tau == 0.5
+    assert DREAM("MetaBus-v0").tau == 1.0  # the paper's hard copies by default
+    with pytest.raises(ValueError, match="tau must be in \\[0, 1\\] \\(1: hard target updates\\), got 1.5"):
+        DREAM("MetaBus-v0", tau=1.5)
+    with pytest.raises(ValueError, match="tau must be a number >= 0, got -0.9"):
+        DREAM.load(tmp_path / "soft.zip", tau=-0.9)
+
+
+def test_saves_from_before_tau_load_with_hard_target_updates():
+    # DREAM's saves before it took SB3's tau hold SB3's unused default 0.005 under "tau"
+    path = pathlib.Path(__file__).resolve().parents[1] / "models" / "dream_metabus_map.zip"
+    with zipfile.ZipFile(path) as archive:
+        assert json.loads(archive.read("data"))["tau"] == 0.005
+    assert DREAM.load(path).tau == 1.0
 
 
 def test_predict_without_state_in_execution_warns_once(bus_model):

@@ -35,6 +35,13 @@ def trial_spec_of(env: Union[VecEnv, gym.Env]) -> Optional[Dict[str, Any]]:
     return specs[0]
 
 
+def check_tau(tau: Any) -> float:
+    """SB3's target update coefficient: a number in [0, 1] (1: hard target updates), or a ``ValueError`` naming it."""
+    if check_non_negative("tau", tau) > 1:
+        raise ValueError(f"tau must be in [0, 1] (1: hard target updates), got {tau!r}")
+    return float(tau)
+
+
 def env_steps_per_update(train_freq: Union[int, Tuple[int, str]]) -> int:
     """``train_freq`` as env steps: an int, or SB3's ``(n, "step")`` form (episodes do not apply:
     one episode is a whole trial, and the paper counts updates per env step)."""

@@ -50,7 +50,7 @@ from stable_baselines3.common.utils import safe_mean
 
 from dream_envs import EXECUTION, EXPLORATION
 from dream_envs.checks import check_choice, check_non_negative, check_positive_int
-from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
+from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm, check_tau
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream import losses, updates
 from sb3_dream.dream.acting import REQUIRED_KEYS, DreamActing, TrialState, act, model_states
@@ -93,6 +93,10 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         SB3's ``(n, "step")``.
     :param gradient_steps: updates of each part per round (the paper's 1).
     :param target_update_interval: updates between target-network syncs (the paper's 5000).
+    :param tau: SB3's target update coefficient at each sync: 1 (default) copies the online networks
+        into their targets (the paper's hard updates); tau < 1 moves each target parameter that
+        fraction of the way to its online one (Polyak averaging), usually with
+        ``target_update_interval=1``. All four targets (encoder, decoder, both Q-networks) alike.
     :param exploration_learning_starts: trials collected before the exploration policy learns.
     :param execution_learning_starts: trials collected before the execution side learns.
     :param exploration_initial_eps: epsilon of both policies at the start.
@@ -152,7 +156,6 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     sb3_equivalents: ClassVar[Dict[str, str]] = {
         "exploration_fraction": "its epsilons decay over env steps: eps_decay_steps (execution_eps_decay_steps "
         "for the execution policy's own)",
-        "tau": "its target networks are copied every target_update_interval updates (the paper's hard updates)",
         "replay_buffer_class": "it keeps two buffers of its own, sized by buffer_size (exploration trajectories) "
         "and execution_buffer_size (execution transitions)",
         "replay_buffer_kwargs": "its buffers are sized by buffer_size and execution_buffer_size",
@@ -176,6 +179,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         train_freq: Union[int, Tuple[int, str]] = 4,
         gradient_steps: int = 1,
         target_update_interval: int = 5000,
+        tau: float = 1.0,
         exploration_learning_starts: int = 8000,
         execution_learning_starts: int = 500,
         exploration_initial_eps: float = 1.0,
@@ -262,6 +266,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         )
         self.execution_buffer_size = execution_buffer_size
         self.target_update_interval = target_update_interval
+        self.tau = tau  # checked by the property
         self.exploration_learning_starts = exploration_learning_starts
         self.execution_learning_starts = execution_learning_starts
         self.exploration_initial_eps = exploration_initial_eps
@@ -360,6 +365,28 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
 
     def _excluded_save_params(self) -> List[str]:
         return [*super()._excluded_save_params(), "_trial_state", "_update_thread", "_warned_stateless_predict"]
+
+    @property
+    def tau(self) -> float:
+        """SB3's target update coefficient (see the constructor). Saved as ``_target_tau``: saves made
+        before DREAM took ``tau`` hold SB3's unused default (0.005) under ``tau`` and load with 1,
+        the hard updates they were trained with."""
+        return self._target_tau
+
+    @tau.setter
+    def tau(self, value: float) -> None:
+        self._target_tau = check_tau(value)
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls, path: Any, env: Optional[GymEnv] = None, *args: Any, **kwargs: Any
+    ) -> "DREAM":
+        """SB3's ``load``; a ``tau`` among ``kwargs`` goes through :attr:`tau` (SB3 sets them raw)."""
+        model = super().load(path, env, *args, **kwargs)
+        model.__dict__.pop("tau", None)  # an older save's SB3 default, or a raw kwarg: the property holds tau
+        if "tau" in kwargs:
+            model.tau = kwargs["tau"]
+        return model
 
     def _get_torch_save_params(self) -> Tuple[List[str], List[str]]:
         return ["policy", "policy.optimizer", "policy.exploration_optimizer"], []
@@ -510,7 +537,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
                 stats.setdefault(key, []).append(value)
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:
-                self.policy.sync_targets()
+                self.policy.sync_targets(self.tau)
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         for key, values in stats.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))

@@ -21,6 +21,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.preprocessing import is_image_space
 from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.utils import polyak_update
 from torch import nn
 
 from dream_envs.checks import check_non_negative, check_positive_int
@@ -503,10 +504,14 @@ class DreamPolicy(BasePolicy):
     def targets(self) -> Tuple[nn.Module, ...]:
         return self.encoder_target, self.decoder_target, self.execution_q_target, self.exploration_q_target
 
-    def sync_targets(self) -> None:
-        """Copy every online network into its target (Algorithm 1, lines 22-23)."""
+    def sync_targets(self, tau: float = 1.0) -> None:
+        """Copy every online network into its target (Algorithm 1, lines 22-23); with ``tau`` < 1,
+        move each target parameter that fraction of the way instead (SB3's Polyak update)."""
         for online, target in zip(self.onlines(), self.targets()):
-            target.load_state_dict(online.state_dict())
+            if tau == 1:
+                target.load_state_dict(online.state_dict())
+            else:
+                polyak_update(online.parameters(), target.parameters(), tau)
 
     def _get_constructor_parameters(self) -> Dict[str, Any]:
         data = super()._get_constructor_parameters()

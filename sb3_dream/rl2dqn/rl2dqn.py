@@ -18,7 +18,7 @@ import dream_envs  # noqa: F401  (registers the trial envs so their IDs resolve 
 from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent
 from dream_envs.checks import check_choice, check_non_negative, check_positive_int
 from sb3_dream.common.buffers import SequenceReplayBuffer, SequenceReplayBufferSamples
-from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm
+from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm, check_tau
 from sb3_dream.common.recurrent import TD_LOSSES, LinearEpsilonSchedule, double_dqn_targets, masked_td_loss
 from sb3_dream.common.wrappers import FinalObsWrapper, final_obs_entry
 from sb3_dream.common.agents import PolicyBatchAgent
@@ -215,8 +215,7 @@ class RL2DQN(TrialOffPolicyAlgorithm):
             raise ValueError(f"burn_in must be smaller than sequence_length={sequence_length}, got {burn_in}")
         check_choice("td_loss", td_loss, TD_LOSSES)
         check_non_negative("max_grad_norm", max_grad_norm)
-        if check_non_negative("tau", tau) > 1:
-            raise ValueError(f"tau must be in [0, 1] (1: hard target updates), got {tau!r}")
+        check_tau(tau)
         check_positive_int("buffer_size", buffer_size, 1)
         check_positive_int("batch_size", batch_size, 1)
         self.target_update_interval = check_positive_int("target_update_interval", target_update_interval, 1)
