@@ -27,7 +27,6 @@ operators by self CPU time (``--profile-rows`` rows).
 from __future__ import annotations
 
 import argparse
-import statistics
 from typing import Callable, Dict, List, Tuple
 
 import gymnasium as gym
@@ -36,7 +35,7 @@ import torch as th
 import dream_envs  # noqa: F401  (registers the envs)
 from sb3_dream import IMPORT, RL2DQN, VariBAD
 from sb3_dream.varibad.varibad import DECODER_LOSS_METHODS
-from timing import interleaved_rounds
+from timing import interleaved_rounds, summary
 
 ALGOS = {"RL2DQN": RL2DQN, "IMPORT": IMPORT, "VariBAD": VariBAD}
 
@@ -90,10 +89,10 @@ def main() -> None:
           f"{next(iter(models.values())).batch_size}; medians of {args.rounds} interleaved rounds of "
           f"{args.updates} updates")
     print(f"{'entry':<20} {'ms/update':>10} {'x first':>9}   (min - max)")
-    first = statistics.median(times[todo[0][0]])
+    first = summary(times[todo[0][0]])[0]
     for name, _ in todo:
-        ms = statistics.median(times[name])
-        print(f"{name:<20} {ms:>10.1f} {ms / first:>9.2f}   ({min(times[name]):.1f} - {max(times[name]):.1f})")
+        ms, low, high = summary(times[name])
+        print(f"{name:<20} {ms:>10.1f} {ms / first:>9.2f}   ({low:.1f} - {high:.1f})")
     for name, set_up in todo if args.profile else []:
         set_up()
         model = models[name.split("[")[0]]

@@ -254,6 +254,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
             gamma=gamma,
             train_freq=train_freq,
             gradient_steps=gradient_steps,
+            tau=tau,  # SB3 sets it through the tau property, which checks it
             policy_kwargs=policy_kwargs,
             stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
@@ -266,7 +267,6 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         )
         self.execution_buffer_size = execution_buffer_size
         self.target_update_interval = target_update_interval
-        self.tau = tau  # checked by the property
         self.exploration_learning_starts = exploration_learning_starts
         self.execution_learning_starts = execution_learning_starts
         self.exploration_initial_eps = exploration_initial_eps
