@@ -1074,6 +1074,34 @@ def test_saves_from_before_tau_load_with_hard_target_updates():
     assert DREAM.load(path).tau == 1.0
 
 
+@pytest.mark.parametrize("parallel", [False, True])
+def test_execution_update_ratio_makes_k_execution_steps_per_exploration_step(tmp_path, parallel):
+    model = DREAM("MetaBus-v0", seed=0, execution_update_ratio=3, parallel_updates=parallel, **FAST)
+    model.learn(400)
+    policy = model.policy
+
+    def steps(optimizer, net):  # Adam's step count of one of the network's parameters
+        return int(optimizer.state[next(net.parameters())]["step"])
+
+    before = steps(policy.exploration_optimizer, policy.exploration_q), steps(policy.optimizer, policy.execution_q)
+    n_updates = model._n_updates
+    model.train(gradient_steps=2, batch_size=8)
+    after = steps(policy.exploration_optimizer, policy.exploration_q), steps(policy.optimizer, policy.execution_q)
+    assert (after[0] - before[0], after[1] - before[1]) == (2, 6)
+    assert model._n_updates == n_updates + 2  # target syncs keep counting exploration updates
+    model.save(tmp_path / "ratio.zip")
+    assert DREAM.load(tmp_path / "ratio.zip").execution_update_ratio == 3
+
+
+def test_execution_update_ratio_defaults_to_algorithm_1_and_is_checked():
+    assert DREAM("MetaBus-v0").execution_update_ratio == 1
+    path = pathlib.Path(__file__).resolve().parents[1] / "models" / "dream_metabus_map.zip"
+    assert DREAM.load(path).execution_update_ratio == 1  # saved before the option existed
+    for value in (0, 1.5, True):
+        with pytest.raises(ValueError, match=f"execution_update_ratio must be an integer >= 1, got {value!r}"):
+            DREAM("MetaBus-v0", execution_update_ratio=value)
+
+
 def test_predict_without_state_in_execution_warns_once(bus_model):
     import warnings
 

@@ -54,7 +54,13 @@ from sb3_dream.common.off_policy import TrialOffPolicyAlgorithm, check_tau
 from sb3_dream.common.recurrent import LinearEpsilonSchedule
 from sb3_dream.dream import losses, updates
 from sb3_dream.dream.acting import REQUIRED_KEYS, DreamActing, TrialState, act, model_states
-from sb3_dream.dream.buffers import DreamReplayBuffer, ExecutionBuffer, ExplorationBuffer
+from sb3_dream.dream.buffers import (
+    DreamReplayBuffer,
+    ExecutionBatch,
+    ExecutionBuffer,
+    ExplorationBuffer,
+    TrajectoryBatch,
+)
 from sb3_dream.dream.policies import DreamPolicy
 
 SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
@@ -146,6 +152,12 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     :param exploration_n_step: the same for the exploration Q's targets over its trajectories,
         whose rewards are Equation 5's information gains: 1 (default) is the paper's; n > 1 sums the
         next n gains (the exploration episode's end is terminal).
+    :param execution_update_ratio: execution updates (Equations 2-4 on a fresh execution batch each)
+        per exploration update: 1 (default) is Algorithm 1's one of each. With k > 1 every one of the
+        ``gradient_steps`` updates of a round runs the exploration update beside the first execution
+        update (as ``parallel_updates`` does) and then k - 1 more execution updates alone; the targets
+        are synced once per such update, so ``target_update_interval`` keeps counting exploration
+        updates. For envs where execution, not exploration, is what the learning curve waits for.
     :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
         networks: ``execution_hidden_sizes``, ``execution_time_input``, ``exploration_time_input``,
         ``execution_instruction_mlp``, ``execution_recurrent`` (needs
@@ -165,6 +177,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     }
     policy: DreamPolicy
     replay_buffer: DreamReplayBuffer  # type: ignore[assignment]
+    execution_update_ratio: int = 1  # what models saved before the option load with
 
     def __init__(
         self,
@@ -200,6 +213,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         execution_sampling: str = "transitions",
         execution_n_step: int = 1,
         exploration_n_step: int = 1,
+        execution_update_ratio: int = 1,
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -225,6 +239,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
             ("z_dim", z_dim, 1),
             ("execution_n_step", execution_n_step, 1),
             ("exploration_n_step", exploration_n_step, 1),
+            ("execution_update_ratio", execution_update_ratio, 1),
         ]:
             check_positive_int(name, value, minimum)
         for name, value in [
@@ -287,6 +302,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self.execution_sampling = execution_sampling
         self.execution_n_step = int(execution_n_step)
         self.exploration_n_step = int(exploration_n_step)
+        self.execution_update_ratio = int(execution_update_ratio)
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
         if self.env is not None:
@@ -544,21 +560,33 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
 
     def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> Dict[str, float]:
         """One gradient step of each part that is ready, in Algorithm 1's order: exploration
-        (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21)."""
+        (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21);
+        then ``execution_update_ratio - 1`` more execution steps, each on its own batch."""
         buffers, stats = self.replay_buffer, {}
         if exploration_ready:
             explored = buffers.sample_trajectories(batch_size, self._rng)
         if execution_ready:
-            exe, traj = buffers.sample_execution(
-                batch_size, self._rng, episodes=self.execution_sampling == "episodes", n_step=self.execution_n_step
-            )
+            exe, traj = self._sample_execution(batch_size)
         if self.updates_in_parallel and exploration_ready and execution_ready:
-            return updates.parallel_update(self, explored, exe, traj)
-        if exploration_ready:
-            stats.update(updates.exploration_update(self, explored, *updates.reward_codes(self.policy, explored)))
-        if execution_ready:
-            stats.update(updates.execution_update(self, exe, traj))
+            stats = updates.parallel_update(self, explored, exe, traj)
+        else:
+            if exploration_ready:
+                stats.update(updates.exploration_update(self, explored, *updates.reward_codes(self.policy, explored)))
+            if execution_ready:
+                stats.update(updates.execution_update(self, exe, traj))
+        if execution_ready and self.execution_update_ratio > 1:  # the ratio's further updates, alone
+            more = [
+                updates.execution_update(self, *self._sample_execution(batch_size))
+                for _ in range(self.execution_update_ratio - 1)
+            ]
+            stats.update({key: float(np.mean([stats[key]] + [m[key] for m in more])) for key in more[0]})
         return stats
+
+    def _sample_execution(self, batch_size: int) -> Tuple[ExecutionBatch, TrajectoryBatch]:
+        """An execution batch and the trajectories its trials explored (``execution_sampling``)."""
+        return self.replay_buffer.sample_execution(
+            batch_size, self._rng, episodes=self.execution_sampling == "episodes", n_step=self.execution_n_step
+        )
 
     @property
     def updates_in_parallel(self) -> bool:
