@@ -154,8 +154,8 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         next n gains (the exploration episode's end is terminal).
     :param execution_update_ratio: execution updates (Equations 2-4 on a fresh execution batch each)
         per exploration update: 1 (default) is Algorithm 1's one of each. With k > 1 every one of the
-        ``gradient_steps`` updates of a round runs the exploration update beside the first execution
-        update (as ``parallel_updates`` does) and then k - 1 more execution updates alone; the targets
+        ``gradient_steps`` updates of a round runs the exploration update and the first execution
+        update as before (side by side with ``parallel_updates``), then k - 1 more execution updates; the targets
         are synced once per such update, so ``target_update_interval`` keeps counting exploration
         updates. For envs where execution, not exploration, is what the learning curve waits for.
     :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
