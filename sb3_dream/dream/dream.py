@@ -155,9 +155,10 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     :param execution_update_ratio: execution updates (Equations 2-4 on a fresh execution batch each)
         per exploration update: 1 (default) is Algorithm 1's one of each. With k > 1 every one of the
         ``gradient_steps`` updates of a round runs the exploration update and the first execution
-        update as before (side by side with ``parallel_updates``), then k - 1 more execution updates; the targets
-        are synced once per such update, so ``target_update_interval`` keeps counting exploration
-        updates. For envs where execution, not exploration, is what the learning curve waits for.
+        update as before (side by side with ``parallel_updates``), then k - 1 more execution
+        updates; the targets are synced once per such update, so ``target_update_interval`` keeps
+        counting exploration updates. For envs where execution, not exploration, is what the
+        learning curve waits for.
     :param policy_kwargs: :class:`DreamPolicy` options, each a documented deviation from the paper's
         networks: ``execution_hidden_sizes``, ``execution_time_input``, ``exploration_time_input``,
         ``execution_instruction_mlp``, ``execution_recurrent`` (needs
@@ -549,8 +550,9 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self._update_learning_rate([self.policy.optimizer, self.policy.exploration_optimizer])
         stats: Dict[str, List[float]] = {}
         for _ in range(gradient_steps):
-            for key, value in self._update(batch_size, exploration_ready, execution_ready).items():
-                stats.setdefault(key, []).append(value)
+            for update_stats in self._update(batch_size, exploration_ready, execution_ready):
+                for key, value in update_stats.items():
+                    stats.setdefault(key, []).append(value)
             self._n_updates += 1
             if self._n_updates % self.target_update_interval == 0:
                 self.policy.sync_targets(self.tau)
@@ -558,10 +560,11 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         for key, values in stats.items():
             self.logger.record(f"train/{key}", float(np.mean(values)))
 
-    def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> Dict[str, float]:
+    def _update(self, batch_size: int, exploration_ready: bool, execution_ready: bool) -> List[Dict[str, float]]:
         """One gradient step of each part that is ready, in Algorithm 1's order: exploration
         (lines 14-16), then execution, bottleneck and decoder on the execution samples (17-21);
-        then ``execution_update_ratio - 1`` more execution steps, each on its own batch."""
+        then ``execution_update_ratio - 1`` more execution steps, each on its own batch. The
+        statistics of each step, for :meth:`train` to average."""
         buffers, stats = self.replay_buffer, {}
         if exploration_ready:
             explored = buffers.sample_trajectories(batch_size, self._rng)
@@ -574,13 +577,8 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
                 stats.update(updates.exploration_update(self, explored, *updates.reward_codes(self.policy, explored)))
             if execution_ready:
                 stats.update(updates.execution_update(self, exe, traj))
-        if execution_ready and self.execution_update_ratio > 1:  # the ratio's further updates, alone
-            more = [
-                updates.execution_update(self, *self._sample_execution(batch_size))
-                for _ in range(self.execution_update_ratio - 1)
-            ]
-            stats.update({key: float(np.mean([stats[key]] + [m[key] for m in more])) for key in more[0]})
-        return stats
+        more = self.execution_update_ratio - 1 if execution_ready else 0  # the ratio's further updates, alone
+        return [stats] + [updates.execution_update(self, *self._sample_execution(batch_size)) for _ in range(more)]
 
     def _sample_execution(self, batch_size: int) -> Tuple[ExecutionBatch, TrajectoryBatch]:
         """An execution batch and the trajectories its trials explored (``execution_sampling``)."""
