@@ -136,6 +136,7 @@ VARIANTS = {
     "laptop": {k: v for k, v in PRESETS["laptop"].items() if k in ("policy_kwargs", "execution_sampling")},
     "decoder64": {"policy_kwargs": {"decoder_hidden_size": 64}},  # the decoder's LSTM of 64, not 128
     "exec2": {"execution_update_ratio": 2},  # two execution updates per exploration update
+    "alternate": {"execution_z": "alternate"},  # one execution loss per update, its z source in turn
     # image envs (SignNav3D-v0): every CNN sees the frames average-pooled 2x2
     "downsample2": {"policy_kwargs": {"image_downsample": 2}},
     # image envs: every position's frame through the CNNs (before distinct frames; not a DREAM kwarg)

@@ -505,8 +505,15 @@ RECURRENT_EXECUTION = {
 }
 
 
-@pytest.mark.parametrize("networks", [{}, RECURRENT_EXECUTION], ids=["paper", "recurrent-execution"])
-@pytest.mark.parametrize("target_z", EXECUTION_TARGET_Z)
+@pytest.mark.parametrize(
+    "target_z, networks",
+    [(z, {}) for z in EXECUTION_TARGET_Z]
+    + [(z, RECURRENT_EXECUTION) for z in EXECUTION_TARGET_Z]
+    + [("own", {**RECURRENT_EXECUTION, "execution_z": "alternate"})],
+    ids=[f"paper-{z}" for z in EXECUTION_TARGET_Z]
+    + [f"recurrent-execution-{z}" for z in EXECUTION_TARGET_Z]
+    + ["recurrent-execution-own-alternate"],
+)
 def test_parallel_updates_compute_what_sequential_updates_do(tmp_path, target_z, networks):
     # the worker thread runs the no-gradient passes (the target networks' Q^exe(s', z), the reward
     # codes) and the exploration update beside the execution update: same inputs, same order of
@@ -1100,6 +1107,55 @@ def test_execution_update_ratio_defaults_to_algorithm_1_and_is_checked():
     for value in (0, 1.5, True):
         with pytest.raises(ValueError, match=f"execution_update_ratio must be an integer >= 1, got {value!r}"):
             DREAM("MetaBus-v0", execution_update_ratio=value)
+
+
+@pytest.mark.parametrize(
+    "options", [{}, {**RECURRENT_EXECUTION, "execution_n_step": 3}], ids=["paper", "recurrent-episodes-3-step"]
+)
+def test_execution_z_alternate_computes_one_of_algorithm_1s_two_losses(options):
+    # one update with one z source gives that source's DDQN loss of the two-source update on the
+    # same batch (the same draw of F's noise), and the same decoder and bottleneck losses
+    model = DREAM("MetaBus-v0", seed=0, parallel_updates=False, **FAST, **options)
+    model.learn(400)
+    exe, traj = model._sample_execution(8)
+    saved = {k: v.clone() for k, v in model.policy.state_dict().items()}
+    optimizer = copy.deepcopy(model.policy.optimizer.state_dict())
+
+    def update(sources):
+        model.policy.load_state_dict(saved)
+        model.policy.optimizer.load_state_dict(optimizer)
+        th.manual_seed(5)
+        return updates.execution_update(model, exe, traj, sources=sources)
+
+    both, decoder, encoder = update(updates.Z_SOURCES), update(("decoder",)), update(("encoder",))
+    assert set(both) - set(decoder) == {"execution_loss_prob"} and set(both) - set(encoder) == {"execution_loss_traj"}
+    assert decoder["execution_loss_traj"] == pytest.approx(both["execution_loss_traj"], rel=1e-5)
+    assert encoder["execution_loss_prob"] == pytest.approx(both["execution_loss_prob"], rel=1e-5)
+    assert both["execution_loss_traj"] != pytest.approx(both["execution_loss_prob"], rel=1e-3)  # two different losses
+    for key in ("decoder_loss", "bottleneck_loss", "f_norm_sq"):
+        assert decoder[key] == encoder[key] == both[key], key
+
+
+def test_execution_z_alternate_takes_the_sources_in_turn_and_is_saved(tmp_path):
+    model = DREAM("MetaBus-v0", seed=0, execution_z="alternate", execution_update_ratio=2, **FAST)
+    model.learn(400)
+    turn = model._n_execution_updates
+    assert turn > 0
+    losses = [key for stats in model._update(8, True, True) for key in stats if key.startswith("execution_loss")]
+    expected = ["execution_loss_traj", "execution_loss_prob"]
+    assert losses == expected if turn % 2 == 0 else expected[::-1]  # both of the ratio's updates, in turn
+    assert model._n_execution_updates == turn + 2
+    model.save(tmp_path / "alternate.zip")
+    loaded = DREAM.load(tmp_path / "alternate.zip")
+    assert (loaded.execution_z, loaded._n_execution_updates) == ("alternate", turn + 2)
+
+
+def test_execution_z_defaults_to_algorithm_1_and_is_checked():
+    assert DREAM("MetaBus-v0").execution_z == "both"
+    path = pathlib.Path(__file__).resolve().parents[1] / "models" / "dream_metabus_map.zip"
+    assert DREAM.load(path).execution_z == "both"  # saved before the option existed
+    with pytest.raises(ValueError, match=r"execution_z=.*accepted values: 'both', 'alternate'"):
+        DREAM("MetaBus-v0", execution_z="encoder")
 
 
 def test_predict_without_state_in_execution_warns_once(bus_model):

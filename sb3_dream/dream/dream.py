@@ -68,6 +68,7 @@ SelfDREAM = TypeVar("SelfDREAM", bound="DREAM")
 # What the execution Q's target conditions on (DREAM(execution_target_z=...)).
 EXECUTION_TARGET_Z = ("own", "encoder")
 EXECUTION_SAMPLING = ("transitions", "episodes")
+EXECUTION_Z = ("both", "alternate")
 PARALLEL_UPDATES = (True, False, "auto")
 
 
@@ -135,6 +136,12 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         (default), each loss's own source through the target networks (target decoder for z = g,
         target encoder for z from F); ``"encoder"``, the target encoder's f(T) for both, as in the
         authors' code, which saves the target decoder's pass.
+    :param execution_z: the z the execution Q learns with in one update: ``"both"`` (default,
+        Algorithm 1's lines 18-19), one DDQN loss with z = g(tau^exp) and one with z ~ F(z | T) on
+        the same samples; ``"alternate"`` (the authors' code, where the execution Q learns with
+        the z its current trial acts with), one of them per update, the decoder's and the
+        encoder's in turn. The bottleneck and the decoder loss are in every update either way.
+        Halves the execution Q's rows per update; each source then has half the updates.
     :param execution_sampling: what one execution update learns from: ``"transitions"`` (default,
         Algorithm 1), ``batch_size`` transitions drawn uniformly from B_exe; ``"episodes"`` (the
         authors' code), every transition of ``batch_size`` execution episodes. The decoder, the
@@ -178,7 +185,10 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
     }
     policy: DreamPolicy
     replay_buffer: DreamReplayBuffer  # type: ignore[assignment]
-    execution_update_ratio: int = 1  # what models saved before the option load with
+    # What models saved before these options load with.
+    execution_update_ratio: int = 1
+    execution_z: str = "both"
+    _n_execution_updates: int = 0
 
     def __init__(
         self,
@@ -215,6 +225,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         execution_n_step: int = 1,
         exploration_n_step: int = 1,
         execution_update_ratio: int = 1,
+        execution_z: str = "both",
         stats_window_size: int = 100,
         tensorboard_log: Optional[str] = None,
         policy_kwargs: Optional[Dict[str, Any]] = None,
@@ -254,6 +265,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         check_choice("execution_target_z", execution_target_z, EXECUTION_TARGET_Z)
         check_choice("parallel_updates", parallel_updates, PARALLEL_UPDATES)
         check_choice("execution_sampling", execution_sampling, EXECUTION_SAMPLING)
+        check_choice("execution_z", execution_z, EXECUTION_Z)
         if policy_kwargs and "z_dim" in policy_kwargs and policy_kwargs["z_dim"] != z_dim:
             raise ValueError(
                 f"z_dim is DREAM's argument: pass z_dim={policy_kwargs['z_dim']!r} to DREAM, not in policy_kwargs "
@@ -304,6 +316,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self.execution_n_step = int(execution_n_step)
         self.exploration_n_step = int(exploration_n_step)
         self.execution_update_ratio = int(execution_update_ratio)
+        self.execution_z = execution_z
         self._update_thread: Optional[ThreadPoolExecutor] = None
 
         if self.env is not None:
@@ -319,6 +332,7 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         self._n_exploration_steps = 0
         self._n_execution_steps = 0
         self._z_from_encoder: Optional[np.ndarray] = None  # per env: this trial's z source
+        self._n_execution_updates = 0
         if _init_setup_model:
             self._setup_model()
 
@@ -571,14 +585,24 @@ class DREAM(DreamActing, TrialOffPolicyAlgorithm):
         if execution_ready:
             exe, traj = self._sample_execution(batch_size)
         if self.updates_in_parallel and exploration_ready and execution_ready:
-            stats = updates.parallel_update(self, explored, exe, traj)
+            stats = updates.parallel_update(self, explored, exe, traj, self._execution_z_sources())
         else:
             if exploration_ready:
                 stats.update(updates.exploration_update(self, explored, *updates.reward_codes(self.policy, explored)))
             if execution_ready:
-                stats.update(updates.execution_update(self, exe, traj))
+                stats.update(updates.execution_update(self, exe, traj, sources=self._execution_z_sources()))
         more = self.execution_update_ratio - 1 if execution_ready else 0  # the ratio's further updates, alone
-        return [stats] + [updates.execution_update(self, *self._sample_execution(batch_size)) for _ in range(more)]
+        return [stats] + [
+            updates.execution_update(self, *self._sample_execution(batch_size), sources=self._execution_z_sources())
+            for _ in range(more)
+        ]
+
+    def _execution_z_sources(self) -> Tuple[str, ...]:
+        """The z sources of the next execution update (``execution_z``), counting the updates."""
+        turn, self._n_execution_updates = self._n_execution_updates, self._n_execution_updates + 1
+        if self.execution_z == "both":
+            return updates.Z_SOURCES
+        return (updates.Z_SOURCES[turn % 2],)
 
     def _sample_execution(self, batch_size: int) -> Tuple[ExecutionBatch, TrajectoryBatch]:
         """An execution batch and the trajectories its trials explored (``execution_sampling``)."""

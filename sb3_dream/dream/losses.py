@@ -1,9 +1,9 @@
 """DREAM's objectives as pure functions of network outputs (paper, Section 4 and Appendix A).
 
 * :func:`execution_td_losses`: the execution Q's double-DQN losses (Equation 2's RL term), one for
-  z from the decoder and one for z from the encoder (one-step targets, the paper's, or n-step:
-  over whole episodes, :func:`execution_n_step_targets`, or over each sampled transition's window,
-  :func:`window_n_step_targets`);
+  z from the decoder and one for z from the encoder, or one of them (``execution_z="alternate"``)
+  (one-step targets, the paper's, or n-step: over whole episodes, :func:`execution_n_step_targets`,
+  or over each sampled transition's window, :func:`window_n_step_targets`);
 * :func:`bottleneck_loss`: the information bottleneck on f (Equation 3, with the authors'
   threshold K);
 * :func:`decoder_loss`: the decoder's regression of every prefix g(tau_:t) toward f(T) (Equation 4);
@@ -37,14 +37,15 @@ def execution_td_losses(
     episodes: Optional[th.Tensor] = None,
     steps: Optional[th.Tensor] = None,
     windows: Optional[Tuple[th.Tensor, th.Tensor, th.Tensor]] = None,
-) -> Tuple[th.Tensor, th.Tensor]:
-    """Equation 2's two DDQN losses on one batch of execution transitions evaluated twice.
+) -> Tuple[th.Tensor, ...]:
+    """Equation 2's DDQN losses on one batch of execution transitions evaluated once per z source.
 
-    :param q: ``[2B]`` Q(s, a, z) of the taken actions; rows ``[0, B)`` with z = g(tau^exp),
-        rows ``[B, 2B)`` with z ~ F(z | T).
-    :param next_q_online: ``[2B, A]`` the online Q at s' (picks the next action).
-    :param next_q_target: ``[2B, A]`` the target Q at s' (evaluates it).
-    :param rewards: ``[2B]``; ``dones``: ``[2B]``, 1 where s' is terminal.
+    :param q: ``[kB]`` Q(s, a, z) of the taken actions, k copies of the batch, one per z source:
+        with both of Algorithm 1's, rows ``[0, B)`` with z = g(tau^exp) and rows ``[B, 2B)`` with
+        z ~ F(z | T); with ``execution_z="alternate"`` one copy with one of them.
+    :param next_q_online: ``[kB, A]`` the online Q at s' (picks the next action).
+    :param next_q_target: ``[kB, A]`` the target Q at s' (evaluates it).
+    :param rewards: ``[kB]``; ``dones``: ``[kB]``, 1 where s' is terminal.
     :param n_rows: B.
     :param n_step: 1 (the paper's one-step targets) or n > 1: n-step targets, from the batch's
         whole episodes (``episodes`` and ``steps``, :func:`execution_n_step_targets`) or from each
@@ -55,26 +56,27 @@ def execution_td_losses(
     :param windows: for a batch of single transitions, ``[B, n]`` each: the rewards, terminals and
         validity of each transition's window (``ExecutionBatch.window_*``); s' is then the window's
         last state.
-    :return: the mean squared TD errors of the decoder's rows and of the encoder's rows.
+    :return: the mean squared TD error of each copy's rows, in the copies' order.
     """
+    copies = len(q) // n_rows
     with th.no_grad():
         if n_step == 1:
             target = double_dqn_targets(next_q_online, next_q_target, rewards, dones, gamma)
         elif windows is not None:
             target = window_n_step_targets(
-                next_q_online, next_q_target, *(w.repeat(2, 1) for w in windows), gamma, n_step
+                next_q_online, next_q_target, *(w.repeat(copies, 1) for w in windows), gamma, n_step
             )
         else:
             if episodes is None or steps is None:
                 raise ValueError("n-step execution targets need each transition's episode and step, or its window")
-            # The two z sources' rows are two copies of the batch's episodes: E .. 2E-1 for the second.
+            # The copies' rows hold copies of the batch's episodes: E .. 2E-1 for the second.
             n_episodes = int(episodes.max()) + 1
-            both = th.cat([episodes, episodes + n_episodes])
+            every = th.cat([episodes + c * n_episodes for c in range(copies)])
             target = execution_n_step_targets(
-                next_q_online, next_q_target, rewards, dones, both, steps.repeat(2), gamma, n_step
+                next_q_online, next_q_target, rewards, dones, every, steps.repeat(copies), gamma, n_step
             )
     td = F.mse_loss(q, target, reduction="none")
-    return td[:n_rows].mean(), td[n_rows:].mean()
+    return tuple(rows.mean() for rows in td.split(n_rows))
 
 
 def execution_n_step_targets(

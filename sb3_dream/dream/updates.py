@@ -1,8 +1,9 @@
 """One gradient step of each of DREAM's parts (Algorithm 1, lines 14-21): the networks' passes over
 a sampled batch, the losses of :mod:`sb3_dream.dream.losses`, and the optimizer steps.
 
-* :func:`execution_update`: the execution DDQN with z from the decoder and from the encoder, the
-  bottleneck and the decoder regression, all on the same execution samples, one optimizer step;
+* :func:`execution_update`: the execution DDQN with z from the decoder and from the encoder (or
+  from one of them, ``execution_z="alternate"``), the bottleneck and the decoder regression, all
+  on the same execution samples, one optimizer step;
 * :func:`exploration_update`: the exploration DDQN over whole trajectories on the
   information-gain rewards, recomputed from the current f and g (:func:`reward_codes`);
 * :func:`parallel_update`: both, the exploration step in a second thread (same results).
@@ -17,7 +18,7 @@ each CNN once, and the padding after a trajectory's end, which no loss reads, no
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Tuple, Union
+from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Sequence, Tuple, Union
 
 import torch as th
 
@@ -28,6 +29,11 @@ from sb3_dream.dream.policies import DreamPolicy
 
 if TYPE_CHECKING:
     from sb3_dream.dream.dream import DREAM
+
+# Where the execution Q's z comes from: the decoder's g(tau^exp) or the encoder's F(z | T).
+Z_SOURCES = ("decoder", "encoder")
+# The statistic of each source's TD loss.
+_LOSS_KEYS = {"decoder": "execution_loss_traj", "encoder": "execution_loss_prob"}
 
 
 def trajectory_states(traj: TrajectoryBatch) -> Union[th.Tensor, DistinctFrames]:
@@ -48,19 +54,24 @@ def target_decoder_z(policy: DreamPolicy, traj: TrajectoryBatch) -> th.Tensor:
 
 
 @th.no_grad()
-def execution_target_q(model: "DREAM", exe: ExecutionBatch, traj: TrajectoryBatch) -> th.Tensor:
-    """The target Q^exe's values at each transition's s' [2B, A], for both halves of the execution
-    loss: rows [0, B) with the target z of the loss with z = g (``execution_target_z``), rows
-    [B, 2B) with the target encoder's F(mu). Target networks only, so another thread can compute it
-    while the execution update runs its forward pass."""
+def execution_target_q(
+    model: "DREAM", exe: ExecutionBatch, traj: TrajectoryBatch, sources: Sequence[str] = Z_SOURCES
+) -> th.Tensor:
+    """The target Q^exe's values at each transition's s' [kB, A], one copy of the batch per z
+    source of the execution loss (``sources``, :data:`Z_SOURCES`' names): for the loss with z = g
+    the target z of ``execution_target_z``, for the loss with z from F the target encoder's F(mu).
+    Target networks only, so another thread can compute it while the execution update runs its
+    forward pass."""
     policy, owner = model.policy, exe.trajectories
     z_f_target = policy.encoder_target(traj.problem_features)[owner]
-    if model.execution_target_z == "own":
-        z_target = th.cat([target_decoder_z(policy, traj)[owner], z_f_target])
-    else:  # "encoder": the authors' code, no decoder pass
-        z_target = z_f_target.repeat(2, 1)
+    z_targets = []
+    for source in sources:
+        if source == "decoder" and model.execution_target_z == "own":
+            z_targets.append(target_decoder_z(policy, traj)[owner])
+        else:  # the encoder's loss, or "encoder" targets for both (the authors' code, no decoder pass)
+            z_targets.append(z_f_target)
     target_net = policy.execution_q_target
-    return target_net.q_values(target_net.next_inputs(exe).repeat(2, 1), z_target)
+    return target_net.q_values(target_net.next_inputs(exe).repeat(len(sources), 1), th.cat(z_targets))
 
 
 def execution_update(
@@ -69,34 +80,39 @@ def execution_update(
     traj: TrajectoryBatch,
     target_q: Optional[Callable[[], th.Tensor]] = None,
     before_step: Optional[Callable[[], Any]] = None,
+    sources: Sequence[str] = Z_SOURCES,
 ) -> Dict[str, float]:
     """One step on the execution DDQN with z from g and from F, the bottleneck and the decoder loss
     (Equations 2-4), all on the same execution samples (Appendix A).
 
     One decoder pass gives g of every prefix of the batch's trajectories ``traj``; transition j
-    reads trajectory ``exe.trajectories[j]``. ``target_q`` gives :func:`execution_target_q` when
-    another thread computes it; ``before_step`` is called before the optimizer changes the networks.
+    reads trajectory ``exe.trajectories[j]``. ``sources``: the z sources of the DDQN losses
+    (:data:`Z_SOURCES`, both by default, Algorithm 1's lines 18-19; one with
+    ``execution_z="alternate"``). ``target_q`` gives :func:`execution_target_q` (for the same
+    ``sources``) when another thread computes it; ``before_step`` is called before the optimizer
+    changes the networks.
     """
     policy, net = model.policy, model.policy.execution_q
     g_all = policy.decoder(trajectory_states(traj), traj.actions)  # [N, T+1, z]: every prefix in one pass
     f = policy.encoder(traj.problem_features)  # [N, z]
     owner = exe.trajectories
-    z_g = g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner]  # g(tau^exp) of each trial
-    z_f = model.sample_encoder_z(f[owner])
-
-    # Both DDQN losses in one forward: rows [0, B) use z from g, rows [B, 2B) z from f.
-    z = th.cat([z_g, z_f])
+    z_of = {
+        "decoder": lambda: g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner],  # g(tau^exp)
+        "encoder": lambda: model.sample_encoder_z(f[owner]),
+    }
+    # Every source's DDQN loss in one forward: copy c of the batch's rows uses z from sources[c].
+    z, copies = th.cat([z_of[source]() for source in sources]), len(sources)
     inputs, next_inputs = net.transition_inputs(exe)
-    q = net.q_values(inputs.repeat(2, 1), z).gather(1, exe.actions.repeat(2)[:, None]).squeeze(1)
+    q = net.q_values(inputs.repeat(copies, 1), z).gather(1, exe.actions.repeat(copies)[:, None]).squeeze(1)
     with th.no_grad():
-        next_online = net.q_values(next_inputs.repeat(2, 1), z)
-    next_target = target_q() if target_q is not None else execution_target_q(model, exe, traj)
-    loss_traj, loss_prob = losses.execution_td_losses(
+        next_online = net.q_values(next_inputs.repeat(copies, 1), z)
+    next_target = target_q() if target_q is not None else execution_target_q(model, exe, traj, sources)
+    td_losses = losses.execution_td_losses(
         q,
         next_online,
         next_target,
-        exe.rewards.repeat(2),
-        exe.dones.repeat(2),
+        exe.rewards.repeat(copies),
+        exe.dones.repeat(copies),
         model.gamma,
         len(exe.actions),
         n_step=model.execution_n_step,
@@ -107,7 +123,7 @@ def execution_update(
     bottleneck = losses.bottleneck_loss(f, model.bottleneck_threshold) if model.bottleneck else f.new_zeros(())
     decoder_loss = losses.decoder_loss(g_all, f, traj.lengths)
 
-    loss = loss_traj + loss_prob + model.bottleneck_weight * bottleneck + decoder_loss
+    loss = sum(td_losses) + model.bottleneck_weight * bottleneck + decoder_loss
     policy.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     params = [p for group in policy.optimizer.param_groups for p in group["params"]]
@@ -116,8 +132,7 @@ def execution_update(
         before_step()
     policy.optimizer.step()
     return {
-        "execution_loss_traj": loss_traj.item(),
-        "execution_loss_prob": loss_prob.item(),
+        **{_LOSS_KEYS[source]: td.item() for source, td in zip(sources, td_losses)},
         "execution_q_mean": q.mean().item(),
         "decoder_loss": decoder_loss.item(),
         "f_norm_sq": f.pow(2).sum(dim=1).mean().item(),
@@ -152,7 +167,11 @@ def exploration_update(model: "DREAM", traj: TrajectoryBatch, g: th.Tensor, f: t
 
 
 def parallel_update(
-    model: "DREAM", explored: TrajectoryBatch, exe: ExecutionBatch, traj: TrajectoryBatch
+    model: "DREAM",
+    explored: TrajectoryBatch,
+    exe: ExecutionBatch,
+    traj: TrajectoryBatch,
+    sources: Sequence[str] = Z_SOURCES,
 ) -> Dict[str, float]:
     """``parallel_updates``: the no-gradient passes and the exploration update run in a second
     thread beside the execution update, with the same inputs, so with the same results.
@@ -167,8 +186,8 @@ def parallel_update(
     if model._update_thread is None:
         model._update_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dream-exploration")
     worker, policy = model._update_thread, model.policy
-    target_q = worker.submit(execution_target_q, model, exe, traj)
+    target_q = worker.submit(execution_target_q, model, exe, traj, sources)
     codes = worker.submit(reward_codes, policy, explored)
     exploration = worker.submit(lambda: exploration_update(model, explored, *codes.result()))
-    stats = execution_update(model, exe, traj, target_q=target_q.result, before_step=codes.result)
+    stats = execution_update(model, exe, traj, target_q=target_q.result, before_step=codes.result, sources=sources)
     return {**exploration.result(), **stats}
