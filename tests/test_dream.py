@@ -1143,7 +1143,7 @@ def test_execution_z_alternate_takes_the_sources_in_turn_and_is_saved(tmp_path):
     assert turn > 0
     losses = [key for stats in model._update(8, True, True) for key in stats if key.startswith("execution_loss")]
     expected = ["execution_loss_traj", "execution_loss_prob"]
-    assert losses == expected if turn % 2 == 0 else expected[::-1]  # both of the ratio's updates, in turn
+    assert losses == (expected if turn % 2 == 0 else expected[::-1])  # both of the ratio's updates, in turn
     assert model._n_execution_updates == turn + 2
     model.save(tmp_path / "alternate.zip")
     loaded = DREAM.load(tmp_path / "alternate.zip")

@@ -96,12 +96,10 @@ def execution_update(
     g_all = policy.decoder(trajectory_states(traj), traj.actions)  # [N, T+1, z]: every prefix in one pass
     f = policy.encoder(traj.problem_features)  # [N, z]
     owner = exe.trajectories
-    z_of = {
-        "decoder": lambda: g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner],  # g(tau^exp)
-        "encoder": lambda: model.sample_encoder_z(f[owner]),
-    }
+    z_g = g_all[th.arange(len(g_all), device=g_all.device), traj.lengths][owner]  # g(tau^exp) of each trial
     # Every source's DDQN loss in one forward: copy c of the batch's rows uses z from sources[c].
-    z, copies = th.cat([z_of[source]() for source in sources]), len(sources)
+    z = th.cat([z_g if source == "decoder" else model.sample_encoder_z(f[owner]) for source in sources])
+    copies = len(sources)
     inputs, next_inputs = net.transition_inputs(exe)
     q = net.q_values(inputs.repeat(copies, 1), z).gather(1, exe.actions.repeat(copies)[:, None]).squeeze(1)
     with th.no_grad():
