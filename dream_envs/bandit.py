@@ -49,6 +49,7 @@ class MetaBanditEnv(TrialEnv):
         n_exec_episodes: int = 1,
         reward_free_exploration: bool = True,
         render_mode: Optional[str] = None,
+        final_frames: bool = False,
     ) -> None:
         n_actions = check_positive_int("n_actions", n_actions, minimum=2)
         horizon = check_positive_int("horizon", horizon)
@@ -66,6 +67,7 @@ class MetaBanditEnv(TrialEnv):
             horizon=horizon,
             reward_free_exploration=reward_free_exploration,
             render_mode=render_mode,
+            final_frames=final_frames,
         )
 
     @property

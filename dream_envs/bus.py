@@ -104,6 +104,7 @@ class MetaBusEnv(TrialEnv):
         horizon: int = 20,
         reward_free_exploration: bool = True,
         render_mode: Optional[str] = None,
+        final_frames: bool = False,
     ) -> None:
         self.variant = check_choice("variant", variant, VARIANTS)
         nvec = [SIZE, SIZE, N_OBJECTS] + ([len(PERMUTATIONS) + 1] if variant == "map" else [])
@@ -117,6 +118,7 @@ class MetaBusEnv(TrialEnv):
             horizon=horizon,
             reward_free_exploration=reward_free_exploration,
             render_mode=render_mode,
+            final_frames=final_frames,
         )
         self._n_problems = len(PERMUTATIONS) ** (2 if variant == "distracting" else 1)
         self._links: Dict[Cell, Cell] = {}

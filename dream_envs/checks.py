@@ -25,6 +25,14 @@ def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
     return int(value)
 
 
+def check_bool(name: str, value: Any) -> bool:
+    """Return ``value`` as a ``bool`` or raise a ``ValueError`` naming ``name`` unless it is True or False
+    (a Python or numpy bool: 0, 1 and strings are refused)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def check_non_negative(name: str, value: Any) -> float:
     """Raise a ``ValueError`` naming ``name`` unless ``value`` is a finite real number >= 0 (not a bool)."""
     is_real = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)

@@ -41,9 +41,9 @@ the returned observation belongs to. On the last step of an inner episode it als
 ``episode_end=True``, ``episode_return``, ``episode_length``, ``episode_phase``,
 ``episode_truncated`` (ended by the horizon, not by the MDP or the end-episode action) and ``final_obs``
 (that episode's last inner ``obs``: the step already returns the next episode's first
-observation); with ``render_mode="rgb_array"`` also ``final_frame``, :meth:`render`'s picture of
-that last state. On the trial's last step it holds ``execution_returns``, the list of the N
-execution returns.
+observation); with ``final_frames=True`` (which needs ``render_mode="rgb_array"``) also
+``final_frame``, :meth:`render`'s picture of that last state. On the trial's last step it holds
+``execution_returns``, the list of the N execution returns.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from dream_envs.checks import check_action, check_choice, check_positive_int
+from dream_envs.checks import check_action, check_bool, check_choice, check_positive_int
 
 # Every family has these splits; a family may add its own (``TrialEnv.splits``, e.g. MetaCook's).
 SPLITS = ("train", "test", "all")
@@ -78,6 +78,11 @@ class TrialEnv(gym.Env, ABC):
         no instruction and no rewards; if False it gets an instruction and its rewards (the paper's
         "dashed line" variant), which then count in the step rewards and so in the trial's return.
     :param render_mode: ``None`` or ``"rgb_array"``.
+    :param final_frames: if True, ``info["final_frame"]`` holds :meth:`render`'s picture of each
+        inner episode's last state (the step already returns the next episode's start); needs
+        ``render_mode="rgb_array"``. Off by default because Stable-Baselines3 makes every env it
+        builds from an ID (``make_vec_env``, ``DREAM("MetaBus-v0")``) with ``render_mode="rgb_array"``
+        so that videos can be recorded, and drawing a picture costs far more than a step.
     :param reward_bound: a bound on the absolute value of one step's reward (the bounds of
         ``prev_reward``).
     """
@@ -100,16 +105,18 @@ class TrialEnv(gym.Env, ABC):
         horizon: int = 20,
         reward_free_exploration: bool = True,
         render_mode: Optional[str] = None,
+        final_frames: bool = False,
         reward_bound: float = 10.0,
     ) -> None:
         super().__init__()
         self.split = check_choice("split", split, self.splits)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
         self.horizon = check_positive_int("horizon", horizon)
-        if not isinstance(reward_free_exploration, (bool, np.bool_)):
-            raise ValueError(f"reward_free_exploration must be True or False, got {reward_free_exploration!r}")
-        self.reward_free_exploration = bool(reward_free_exploration)
+        self.reward_free_exploration = check_bool("reward_free_exploration", reward_free_exploration)
         self.render_mode = check_choice("render_mode", render_mode, [None, *self.metadata["render_modes"]])
+        self.final_frames = check_bool("final_frames", final_frames)
+        if self.final_frames and self.render_mode != "rgb_array":
+            raise ValueError(f"final_frames=True needs render_mode='rgb_array', got render_mode={render_mode!r}")
         self.n_actions = int(n_actions)
         self.end_episode_action = end_episode_action
         self.instruction_nvec = np.asarray(instruction_nvec, dtype=np.int64)
@@ -331,7 +338,7 @@ class TrialEnv(gym.Env, ABC):
                 "episode_phase": self.phase,
                 "final_obs": np.array(self._inner_obs, copy=True),
             }
-            if self.render_mode == "rgb_array":  # render() will show the next episode's start
+            if self.final_frames:  # render() will show the next episode's start
                 end_info["final_frame"] = self._render_frame()
             if self.phase == EXECUTION:
                 self._execution_returns.append(self._episode_return)

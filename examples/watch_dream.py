@@ -167,7 +167,12 @@ def main() -> None:
 
     env_kwargs = parse_kwargs(args.env_kwargs, "--env-kwargs")
     env = gym.make(
-        args.env, split=args.split, n_exec_episodes=args.n_exec_episodes, render_mode="rgb_array", **env_kwargs
+        args.env,
+        split=args.split,
+        n_exec_episodes=args.n_exec_episodes,
+        render_mode="rgb_array",
+        final_frames=True,  # each inner episode's last state, which the step has already left
+        **env_kwargs,
     )
     agent = load_agent(args, env)
     options = None if args.problem_id is None else {"problem_id": args.problem_id}

@@ -551,3 +551,22 @@ def test_sb3_argument_names_keep_sb3s_meaning():
         RL2DQN("MetaBus-v0", exploration_fraction=0.1)
     with pytest.raises(TypeError, match="learnin_starts"):
         RL2DQN("MetaBus-v0", learnin_starts=100)
+
+
+@pytest.mark.parametrize("algo", ["RL2DQN", "IMPORT", "VariBAD"])
+def test_adam_runs_fused_unless_optimizer_kwargs_choose(tmp_path, algo):
+    import sb3_dream
+
+    cls = getattr(sb3_dream, algo)
+    model = cls("MetaBandit-v0", learning_starts=20, seed=0)
+    assert isinstance(model.policy.optimizer, th.optim.Adam)
+    assert model.policy.optimizer.param_groups[0]["fused"] is True  # DREAM's default too
+    model.learn(60)
+    assert model._n_updates > 0
+    model.save(tmp_path / "fused.zip")
+    assert cls.load(tmp_path / "fused.zip").policy.optimizer.param_groups[0]["fused"] is True
+    for kwargs in ({"fused": False}, {"foreach": True}):  # the per-parameter loop, the multi-tensor one
+        chosen = cls("MetaBandit-v0", policy_kwargs={"optimizer_kwargs": kwargs}).policy.optimizer.param_groups[0]
+        assert not chosen["fused"] and chosen["foreach"] == kwargs.get("foreach")
+    sgd = cls("MetaBandit-v0", policy_kwargs={"optimizer_class": th.optim.SGD, "optimizer_kwargs": {"momentum": 0.9}})
+    assert "fused" not in sgd.policy.optimizer_kwargs  # only Adam gets the fused default

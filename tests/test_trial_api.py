@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
+from stable_baselines3.common.env_util import make_vec_env
 
 import dream_envs
 from dream_envs import EXECUTION, EXPLORATION, RandomAgent, ScriptedAgent, TrialEnv, play_trial, public_info
@@ -289,7 +290,7 @@ def test_bandit_bad_arguments():
 
 
 def test_final_frame_pictures_the_last_state_of_each_episode():
-    env = gym.make("MetaBus-v0", render_mode="rgb_array", n_exec_episodes=2)
+    env = gym.make("MetaBus-v0", render_mode="rgb_array", final_frames=True, n_exec_episodes=2)
     oracle = dream_envs.make_oracle(env)
     obs, info = env.reset(seed=0)
     previous, ends, terminated = env.render(), 0, False
@@ -302,7 +303,27 @@ def test_final_frame_pictures_the_last_state_of_each_episode():
             assert "final_frame" not in info
         previous = env.render()
     assert ends == 3 and np.array_equal(info["final_frame"], previous)  # the trial's end: nothing new started
-    unrendered = gym.make("MetaBus-v0")
-    unrendered.reset(seed=0)
-    *_, info = unrendered.step(6)  # the end-episode action
-    assert info["episode_end"] and "final_frame" not in info  # drawn only for rgb_array rendering
+
+
+@pytest.mark.parametrize("env_id", ["MetaBus-v0", "MetaCook-v0", "MetaBandit-v0"])
+def test_final_frames_are_drawn_only_when_asked_for(env_id):
+    # SB3 builds every env from an ID with render_mode="rgb_array" (make_vec_env, DREAM("MetaBus-v0")):
+    # training envs must not draw a picture per inner episode unless final_frames=True.
+    rendered = {"render_mode": "rgb_array"}
+    cases = [({}, False), (rendered, False), ({**rendered, "final_frames": True}, True)]
+    for kwargs, drawn in cases:
+        env = gym.make(env_id, **kwargs)
+        env.reset(seed=0)
+        info = {}
+        while not info.get("episode_end"):
+            *_, info = env.step(env.action_space.sample())
+        assert ("final_frame" in info) == drawn, kwargs
+    vec = make_vec_env(env_id, n_envs=2, seed=0)
+    assert vec.get_attr("render_mode") == ["rgb_array"] * 2 and vec.get_attr("final_frames") == [False, False]
+
+
+def test_final_frames_bad_arguments():
+    with pytest.raises(ValueError, match="final_frames=True needs render_mode='rgb_array', got render_mode=None"):
+        gym.make("MetaBus-v0", final_frames=True)
+    with pytest.raises(ValueError, match="final_frames must be True or False, got 1"):
+        gym.make("MetaBus-v0", render_mode="rgb_array", final_frames=1)

@@ -124,6 +124,8 @@ class MetaCookEnv(TrialEnv):
     :param reward_free_exploration: see :class:`~dream_envs.trial_env.TrialEnv`.
     :param undo_reward: the reward of a step that sets the recipe back (default -0.35, see above).
     :param render_mode: ``None`` or ``"rgb_array"``.
+    :param final_frames: see :class:`~dream_envs.trial_env.TrialEnv` (pictures of each inner episode's
+        last state in ``info``).
     """
 
     splits = COOK_SPLITS
@@ -137,6 +139,7 @@ class MetaCookEnv(TrialEnv):
         reward_free_exploration: bool = True,
         undo_reward: float = UNDO_REWARD,
         render_mode: Optional[str] = None,
+        final_frames: bool = False,
     ) -> None:
         horizon = check_positive_int("horizon", horizon)
         # numbers.Real, so numpy scalars (e.g. from a config array) pass; bool is no penalty
@@ -153,6 +156,7 @@ class MetaCookEnv(TrialEnv):
             horizon=horizon,
             reward_free_exploration=reward_free_exploration,
             render_mode=render_mode,
+            final_frames=final_frames,
             # the end-episode action can cost 0.1 per remaining step
             reward_bound=max(1.0, -STEP_REWARD * horizon),
         )

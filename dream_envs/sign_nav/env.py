@@ -73,6 +73,8 @@ class SignNav3DEnv(TrialEnv):
     :param horizon: inner-episode horizon (steps).
     :param reward_free_exploration: see :class:`~dream_envs.trial_env.TrialEnv`.
     :param render_mode: ``None`` or ``"rgb_array"``.
+    :param final_frames: see :class:`~dream_envs.trial_env.TrialEnv` (pictures of each inner episode's
+        last state in ``info``).
     :raises OpenGLUnavailableError: (a ``RuntimeError``) where OpenGL cannot be initialised.
     """
 
@@ -86,6 +88,7 @@ class SignNav3DEnv(TrialEnv):
         horizon: int = 20,
         reward_free_exploration: bool = True,
         render_mode: Optional[str] = None,
+        final_frames: bool = False,
     ) -> None:
         super().__init__(
             inner_observation_space=spaces.Box(0, 255, shape=OBS_SHAPE, dtype=np.uint8),
@@ -97,6 +100,7 @@ class SignNav3DEnv(TrialEnv):
             horizon=horizon,
             reward_free_exploration=reward_free_exploration,
             render_mode=render_mode,
+            final_frames=final_frames,
             reward_bound=1.0,
         )
         # The top-down picture is only drawn for rendering: keep its frame buffer tiny otherwise.

@@ -24,7 +24,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch import nn
 
-from dream_envs.checks import check_non_negative, check_positive_int
+from dream_envs.checks import check_bool, check_non_negative, check_positive_int
 from sb3_dream.common.embedders import (
     DistinctFrames,
     ImageEmbedder,
@@ -32,6 +32,7 @@ from sb3_dream.common.embedders import (
     make_state_embedder,
     relu_mlp,
 )
+from sb3_dream.common.optim import default_optimizer_kwargs
 from sb3_dream.common.recurrent import DuelingHead
 from sb3_dream.dream.buffers import ExecutionBatch
 
@@ -436,8 +437,7 @@ class DreamPolicy(BasePolicy):
             "execution_recurrent": execution_recurrent,
         }
         for name, flag in flags.items():
-            if not isinstance(flag, (bool, np.bool_)):
-                raise ValueError(f"{name} must be True or False, got {flag!r}")
+            check_bool(name, flag)
         for name, flag in time_inputs.items():  # the clock's embedding has one row per step
             if flag and not (isinstance(horizon, (int, np.integer)) and horizon >= 1):
                 raise ValueError(f"{name} needs the inner-episode horizon >= 1, got horizon={horizon!r}")
@@ -469,11 +469,7 @@ class DreamPolicy(BasePolicy):
             target.requires_grad_(False)
         self.sync_targets()
 
-        if optimizer_class is th.optim.Adam and not {"fused", "foreach"} & set(self.optimizer_kwargs):
-            # Adam's fused kernel: the paper's Adam, one call per step instead of about 25 per
-            # parameter tensor (rounded differently from torch's per-parameter loop; see
-            # docs/speed.md). optimizer_kwargs with "fused" or "foreach" choose for themselves.
-            self.optimizer_kwargs = {**self.optimizer_kwargs, "fused": True}
+        self.optimizer_kwargs = default_optimizer_kwargs(optimizer_class, self.optimizer_kwargs)
         self.execution_weight_decay = check_non_negative("execution_weight_decay", execution_weight_decay)
         execution_params = [*self.encoder.parameters(), *self.decoder.parameters(), *self.execution_q.parameters()]
         if self.execution_weight_decay == 0:

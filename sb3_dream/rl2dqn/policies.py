@@ -14,6 +14,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_dream.common.embedders import TRIAL_KEYS, TrialInputEmbedder, check_trial_observation_space
+from sb3_dream.common.optim import default_optimizer_kwargs
 from sb3_dream.common.recurrent import DuelingHead, LSTMStates, reset_lstm_states, unroll_lstm, zero_lstm_states
 
 
@@ -194,6 +195,7 @@ class RL2DQNPolicy(BasePolicy):
                 "embed_kwargs": {"normalize_images": normalize_images, **self.net_kwargs["embed_kwargs"]},
             },
         )
+        self.optimizer_kwargs = default_optimizer_kwargs(optimizer_class, self.optimizer_kwargs)
         self.optimizer = self.optimizer_class(self.trained_parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
 
     def _build_networks(self, observation_space: spaces.Dict, n_actions: int, network_kwargs: Dict[str, Any]) -> None:
