@@ -558,21 +558,6 @@ def test_parallel_updates_auto_follows_the_cores(monkeypatch):
             DREAM("MetaBandit-v0", parallel_updates=bad)
 
 
-def test_adam_runs_fused_unless_optimizer_kwargs_choose(tmp_path):
-    model = DREAM("MetaBandit-v0", seed=0, **FAST)
-    for optimizer in (model.policy.optimizer, model.policy.exploration_optimizer):
-        assert isinstance(optimizer, th.optim.Adam) and optimizer.param_groups[0]["fused"] is True
-    model.learn(300)
-    assert model._n_updates > 0
-    model.save(tmp_path / "fused.zip")
-    assert DREAM.load(tmp_path / "fused.zip").policy.optimizer.param_groups[0]["fused"] is True
-    for kwargs in ({"fused": False}, {"foreach": True}):  # the per-parameter loop, the multi-tensor one
-        chosen = DREAM("MetaBandit-v0", policy_kwargs={"optimizer_kwargs": kwargs}).policy.optimizer.param_groups[0]
-        assert not chosen["fused"] and chosen["foreach"] == kwargs.get("foreach")
-    sgd = DREAM("MetaBandit-v0", policy_kwargs={"optimizer_class": th.optim.SGD, "optimizer_kwargs": {"momentum": 0.9}})
-    assert "fused" not in sgd.policy.optimizer_kwargs  # only Adam gets the fused default
-
-
 def test_execution_body_is_an_option(tmp_path):
     policy_kwargs = dict(execution_hidden_sizes=(128, 32))
     model = DREAM("MetaBandit-v0", policy_kwargs=policy_kwargs)

@@ -553,15 +553,17 @@ def test_sb3_argument_names_keep_sb3s_meaning():
         RL2DQN("MetaBus-v0", learnin_starts=100)
 
 
-@pytest.mark.parametrize("algo", ["RL2DQN", "IMPORT", "VariBAD"])
+@pytest.mark.parametrize("algo", ["DREAM", "RL2DQN", "IMPORT", "VariBAD"])
 def test_adam_runs_fused_unless_optimizer_kwargs_choose(tmp_path, algo):
     import sb3_dream
 
     cls = getattr(sb3_dream, algo)
-    model = cls("MetaBandit-v0", learning_starts=20, seed=0)
-    assert isinstance(model.policy.optimizer, th.optim.Adam)
-    assert model.policy.optimizer.param_groups[0]["fused"] is True  # DREAM's default too
-    model.learn(60)
+    quick = sb3_dream.PRESETS["fast"] if algo == "DREAM" else {"learning_starts": 20}
+    model = cls("MetaBandit-v0", seed=0, **quick)
+    optimizers = [model.policy.optimizer] + ([model.policy.exploration_optimizer] if algo == "DREAM" else [])
+    for optimizer in optimizers:
+        assert isinstance(optimizer, th.optim.Adam) and optimizer.param_groups[0]["fused"] is True
+    model.learn(300 if algo == "DREAM" else 60)
     assert model._n_updates > 0
     model.save(tmp_path / "fused.zip")
     assert cls.load(tmp_path / "fused.zip").policy.optimizer.param_groups[0]["fused"] is True
