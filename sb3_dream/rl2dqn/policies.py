@@ -146,6 +146,8 @@ class RL2DQNPolicy(BasePolicy):
         :func:`~sb3_dream.common.embedders.check_trial_observation_space`).
     :param action_space: Discrete.
     :param lr_schedule: learning-rate schedule (the initial value sets Adam's lr).
+    :param optimizer_kwargs: Adam runs fused (``fused=True``) unless they set ``fused`` or
+        ``foreach`` (:func:`~sb3_dream.common.optim.default_optimizer_kwargs`).
     :param network_kwargs: further arguments of :attr:`q_network_class` (a subclass's Q-network).
     """
 
