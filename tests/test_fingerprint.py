@@ -70,7 +70,15 @@ def test_dream_training_is_bit_identical_to_the_recorded_run(options, expected):
 
 
 @on_recorded_stack
-def test_rl2dqn_training_is_bit_identical_to_the_recorded_run():
+@pytest.mark.parametrize(
+    "policy_kwargs, expected",
+    [
+        ({}, "RL2DQN"),
+        # Adam's per-parameter loop, RL2DQN's default before fused Adam: the digest recorded then
+        ({"optimizer_kwargs": {"fused": False}}, "RL2DQN_LOOP_ADAM"),
+    ],
+)
+def test_rl2dqn_training_is_bit_identical_to_the_recorded_run(policy_kwargs, expected):
     th.set_num_threads(1)
     model = RL2DQN(
         make_vec_env("MetaBus-v0", n_envs=2, seed=0, env_kwargs={"variant": "map"}),
@@ -79,14 +87,16 @@ def test_rl2dqn_training_is_bit_identical_to_the_recorded_run():
         target_update_interval=100,
         buffer_size=200,
         exploration_steps=1000,
+        policy_kwargs=policy_kwargs,
     )
     model.learn(1200)
-    assert digest(model, "MetaBus-v0", variant="map") == EXPECTED["RL2DQN"]
+    assert digest(model, "MetaBus-v0", variant="map") == EXPECTED[expected]
 
 
 EXPECTED = {
     "DREAM_DEFAULT": "db97ef318d4a36a3",
     "DREAM_RECURRENT": "6a7ff308e09139af",
     "DREAM_VEC": "105265a109407bdc",
-    "RL2DQN": "12d13add58ed9719",
+    "RL2DQN": "71499928b539d9c5",  # fused Adam
+    "RL2DQN_LOOP_ADAM": "12d13add58ed9719",
 }
