@@ -54,9 +54,10 @@ def build(args: argparse.Namespace, variant: str) -> Any:
     """The entry's model after ``--warmup`` env steps of learning."""
     env_kwargs, model_kwargs = variant_kwargs(variant)
     preset = copy.deepcopy(algorithm_spec(args.algo).presets[args.preset])
-    kwargs = {**preset, **args.kwargs, **model_kwargs}
-    if "policy_kwargs" in model_kwargs:  # merge with the preset's network arguments
-        kwargs["policy_kwargs"] = {**preset.get("policy_kwargs", {}), **model_kwargs["policy_kwargs"]}
+    kwargs = {**preset, **args.kwargs}
+    if "policy_kwargs" in model_kwargs:  # merged into the preset's (or --kwargs') network arguments
+        model_kwargs = {"policy_kwargs": {**kwargs.get("policy_kwargs", {}), **model_kwargs["policy_kwargs"]}}
+    kwargs.update(model_kwargs)
     env = make_vec_env(
         args.env,
         n_envs=args.n_envs,

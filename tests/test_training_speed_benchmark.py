@@ -56,3 +56,8 @@ def test_build_gives_each_variant_its_envs_and_optimizer(script):
     assert default.policy.optimizer.param_groups[0]["fused"] is True
     assert not changed.policy.optimizer.param_groups[0]["fused"]
     assert changed.exploration_steps == 60_000  # the preset's schedule is kept under the variant's arguments
+    args.algo, args.preset, args.kwargs = "dream", "laptop", {"policy_kwargs": {"execution_hidden_sizes": (32,)}}
+    args.warmup = 300
+    merged = script.build(args, "loop-adam").policy
+    assert not merged.optimizer.param_groups[0]["fused"] and merged.execution_hidden_sizes == (32,)
+    assert not merged.execution_recurrent  # --kwargs' policy_kwargs replace the preset's, as in the runner
