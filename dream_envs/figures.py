@@ -326,8 +326,9 @@ def draw_explorations(ax: Any, env: gym.Env, paths: Sequence[ExplorationPath], t
         markers.append(Line2D([], [], ls="--", color="0.2", label="ride"))
         if grid.variant == "map":
             markers.append(Line2D([], [], ls="none", marker="o", ms=10, mfc="none", mec="0.2", label="map read"))
+    wide = max((len(h.get_label()) for h in handles), default=0) > 44  # two columns would overrun the panel
     ax.legend(handles=handles + markers, loc="upper center", bbox_to_anchor=(0.5, -0.06), fontsize=7,
-              ncol=2, frameon=False)  # fmt: skip
+              ncol=1 if wide else 2, frameon=False)  # fmt: skip
     if title is not None:
         ax.set_title(title, fontsize=9)
 
@@ -346,8 +347,9 @@ def _trial_label(grid: TrialEnv, path: ExplorationPath) -> str:
         if grid.variant == "map":
             found.append("read map" if path.labels("map") else "no map")
     else:
-        opened = path.labels("fridge")
-        found = [f"opened {'; '.join(opened)}" if opened else "no fridge"]
+        # the problem's contents are in the label already: name the fridges, in the order opened
+        opened = [label.split(":")[0] for label in path.labels("fridge")]
+        found = [f"opened {', '.join(opened)}" if opened else "no fridge"]
         return f"problem {path.problem_id} {fridge_contents(path.problem_id)}: {', '.join(found)} ({path.length} steps)"
     return f"problem {path.problem_id}: {', '.join(found)} ({path.length} steps)"
 

@@ -299,3 +299,23 @@ def test_bad_arguments_are_refused_naming_the_argument(tmp_path, script_module, 
         script_module.main(argv)
     assert exit_info.value.code == 2
     assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("env_id,kwargs", [("MetaCook-v0", {}), ("MetaBus-v0", {"variant": "map"})])
+def test_figure_legend_names_what_each_trial_found_within_its_panel(env_id, kwargs):
+    plt = pytest.importorskip("matplotlib.pyplot")
+    from dream_envs.figures import exploration_figure
+
+    env = gym.make(env_id, split="test", **kwargs)
+    paths = exploration_paths(env, env.unwrapped.oracle(), 6)
+    fig = exploration_figure(env, {"a": paths, "b": paths})
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        legend = ax.get_legend()
+        labels = [t.get_text() for t in legend.get_texts()]
+        if env_id == "MetaCook-v0":
+            # the fridges in the order opened; the contents are in the problem's part of the label
+            assert all(" opened F1, F0, F2 (8 steps)" in label for label in labels[:6]), labels
+        # the legend stays under its own panel: side by side, two panels' legends do not overlap
+        assert legend.get_window_extent(renderer).width <= ax.get_window_extent(renderer).width
+    plt.close(fig)
