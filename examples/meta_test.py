@@ -26,7 +26,9 @@ decoder) or execution limits the model, once more with z ~ N(f(T), rho^2 I), the
 the execution policy trains on, and once more with the env's scripted optimal explorer in place of
 the exploration policy and z = g of its trajectory, to tell the explorer from the decoder. With
 ``--exploration`` too, the behaviour report is also made for that privileged agent (z = f(T)):
-what execution does when the code is exactly right.
+what execution does when the code is exactly right. For an IMPORT model ``--diagnose`` runs
+:func:`sb3_dream.import_dqn.diagnose`: the trials once more with z = e(T), the problem's embedding,
+and how far the history's embedding e(tau_:t) stays from it.
 
 ``--exploration`` reports what each agent does, as the paper's Figures 7 and 8 show it. MetaBus-v0:
 colored and gray routes ridden while exploring, whether it read the map
@@ -107,7 +109,8 @@ def main() -> None:
     parser.add_argument(
         "--diagnose",
         action="store_true",
-        help="DREAM: also meta-test on z = f(T), on z ~ N(f(T), rho^2 I) and on g of the optimal exploration",
+        help="DREAM: also meta-test on z = f(T), on z ~ N(f(T), rho^2 I) and on g of the optimal exploration; "
+        "IMPORT: also on z = e(T), with the distance of e(tau) to e(T)",
     )
     parser.add_argument(
         "--exploration", action="store_true", help="MetaBus-v0, MetaCook-v0, SignNav3D-v0: what each agent explores and does"
@@ -201,15 +204,23 @@ def main() -> None:
                     print(f"  {name:>20} with z = f(T): {report.summary()}")
     diagnoses = {}  # path -> DreamDiagnosis, whose z = g trials --gains reuses
     if args.diagnose:
+        from sb3_dream import IMPORT
         from sb3_dream.dream import DREAM, diagnose
+        from sb3_dream.import_dqn import diagnose as diagnose_import
 
         for path, model in models.items():
+            prefix = "" if len(models) == 1 else f"{path} "
+            if isinstance(model, IMPORT):
+                if args.exhaustive:
+                    raise SystemExit("--diagnose of an IMPORT model draws its trials: leave out --exhaustive")
+                d = diagnose_import(model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs)
+                print(f"  {prefix}diagnosis: {d.text()}")
+                continue
             if not isinstance(model, DREAM):
-                raise SystemExit(f"--diagnose needs DREAM models, got {type(model).__name__} ({path})")
+                raise SystemExit(f"--diagnose needs DREAM or IMPORT models, got {type(model).__name__} ({path})")
             d = diagnoses[path] = diagnose(  # one execution episode per trial
                 model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs, exhaustive=args.exhaustive
             )
-            prefix = "" if len(models) == 1 else f"{path} "
             print(
                 f"  {prefix}diagnosis: {d.returns_text()}; "
                 f"||g - f||^2 {d.decoder_error:.3f}"

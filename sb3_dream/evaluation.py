@@ -179,6 +179,45 @@ def make_envs(
     return [_make_env(env, split, n_exec_episodes, None)], []
 
 
+def trial_problem_ids(
+    split_ids: Sequence[int], n_trials: int, seed: int = 0, problem_ids: Optional[Sequence[int]] = None
+) -> np.ndarray:
+    """The problem of each of ``n_trials`` trials, as the diagnostics (DREAM's and IMPORT's
+    ``diagnose``) play them: ``problem_ids`` cycled, or by default drawn uniformly from
+    ``split_ids`` with ``seed``. Hand the result to a privileged agent and to the trial runner
+    (``problem_ids=``) to play the same trials."""
+    if problem_ids is None:
+        return np.random.default_rng(seed).choice(np.asarray(split_ids), size=n_trials)
+    if len(problem_ids) == 0:
+        raise ValueError("problem_ids must not be empty")
+    return np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
+
+
+def privileged_trials(
+    env: Union[str, gym.Env],
+    n_trials: int,
+    split: str,
+    seed: int,
+    env_kwargs: Optional[Dict[str, Any]],
+    problem_ids: Optional[Sequence[int]],
+    n_envs: int,
+    exhaustive: bool = False,
+) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
+    """Checks the arguments of a diagnostic that hands its agent each trial's problem, makes the
+    envs and draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial
+    k's problem). ``exhaustive``: trial k's problem is that of the split's (problem, instruction)
+    pair k (cycled, whole passes, as :func:`evaluate_meta` pins them)."""
+    n_trials = check_positive_int("n_trials", n_trials)
+    n_envs = check_positive_int("n_envs", n_envs)
+    if exhaustive and problem_ids is not None:
+        raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
+    envs, made = make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
+    split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))  # the envs checked ``split``
+    if exhaustive:
+        return envs, made, split_ids, exhaustive_cases(envs[0], split, n_trials)[0]
+    return envs, made, split_ids, trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+
+
 def evaluate_meta(
     agent: Any,
     env: EnvArgument,

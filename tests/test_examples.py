@@ -162,6 +162,25 @@ def test_meta_test_compares_with_the_oracle(trained, tmp_path):
         meta_test.load_model(str(tmp_path / "dqn.zip"))
 
 
+def test_meta_test_diagnoses_an_import_model(tmp_path):
+    import gymnasium as gym
+
+    from sb3_dream import IMPORT
+
+    path = tmp_path / "import.zip"
+    IMPORT("MultiInputLstmPolicy", gym.make("MetaBus-v0", variant="map"), seed=0).save(path)
+    args = ["--model", str(path), "--env-kwargs", "variant=map", "--trials", "3", "--diagnose"]
+    out = run_example("meta_test.py", *args, cwd=tmp_path)
+    assert "IMPORT: execution return" in out
+    assert "diagnosis: return with z = e(tau) " in out and ", with z = e(T) " in out
+    assert " exploring, " in out and " executing, against ||e(T) - e(T')||^2 " in out
+    refused = subprocess.run(
+        [sys.executable, str(EXAMPLES / "meta_test.py"), *args, "--exhaustive"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=180,
+    )  # fmt: skip
+    assert refused.returncode != 0 and "--diagnose of an IMPORT model draws its trials" in refused.stderr
+
+
 @pytest.mark.opengl
 def test_meta_test_plays_the_sign_oracle_on_the_env_it_reads(tmp_path):
     # SignNav3D's oracle navigates by its env's pose: it must play on that env, not on a fresh copy

@@ -303,6 +303,8 @@ def test_checkpointed_run_resumes_where_it_was_interrupted(tmp_path, monkeypatch
     assert np.all(np.diff(curve["wall_clock_s"]) > 0)
     info = json.loads(run.info_path(out).read_text())
     assert info["resumed_from"] == 200 and record["seconds"] >= checkpoint["train_seconds"]
+    if algo == "import_dqn":  # IMPORT runs end with sb3_dream.import_dqn.diagnose of the final model
+        assert info["diagnosis"]["n_trials"] == 2 and info["diagnosis"]["problem_spread"] > 0
     # The complete run keeps one checkpoint, at its final step (for a later, larger budget).
     assert json.loads(run.checkpoint_path(out).read_text())["env_steps"] == 400
     assert sorted(p.name for p in run.checkpoint_path(out).parent.iterdir()) == [

@@ -14,7 +14,7 @@ from sb3_dream import IMPORT, RL2DQN
 from sb3_dream.common.buffers import SequenceReplayBuffer
 from sb3_dream.common.wrappers import RL2ObservationWrapper
 from sb3_dream.evaluation import evaluate_meta
-from sb3_dream.import_dqn import ProblemSequenceSamples, import_aux_loss
+from sb3_dream.import_dqn import ProblemSequenceSamples, diagnose, import_aux_loss
 from test_rl2dqn import SMALL_NET, CueMemoryEnv
 
 
@@ -252,6 +252,59 @@ def test_problem_id_never_reaches_the_networks_at_meta_test():
     model.predict(model.env.reset(), deterministic=True)
 
 
+def test_diagnose_meta_tests_on_the_history_and_acts_on_the_problem_code_when_asked():
+    model = small_model(gym.make("MetaBus-v0"))
+    generator = th.Generator().manual_seed(0)
+    with th.no_grad():  # weights that make the actions depend on the observations and on z
+        for p in model.policy.parameters():
+            p.copy_(th.randn(p.shape, generator=generator))
+    problems = [3, 40, 41, 100, 200, 7]
+    meta_test = evaluate_meta(model, "MetaBus-v0", n_trials=6, seed=2, problem_ids=problems, n_envs=3)
+    runs = []
+    for permute in (False, True):
+        if permute:  # e(T) of each problem now embeds another problem's features
+            model.problem_table = model.problem_table[np.random.default_rng(0).permutation(len(model.problem_table))]
+        log = {}
+        envs = [_RecordActions(gym.make("MetaBus-v0", split="test"), log) for _ in range(3)]
+        runs.append((diagnose(model, envs, n_trials=6, seed=2, problem_ids=problems), log))
+    (plain, plain_log), (permuted, permuted_log) = runs
+    # z = e(tau): meta-test itself, whatever the problem table
+    assert plain.return_history == permuted.return_history == meta_test.mean
+    assert plain.exploration_length == meta_test.mean_exploration_length and plain.n_trials == 6
+    # z = e(T): the problem's features reach the actions
+    assert plain_log != permuted_log
+    assert plain.distance_exploration != permuted.distance_exploration
+    assert 0 < plain.distance_execution and 0 < plain.problem_spread
+    with pytest.raises(TypeError, match="IMPORT model"):
+        diagnose(RL2DQN(gym.make("MetaBus-v0")), "MetaBus-v0")
+
+
+class _CurrentProblem(gym.Wrapper):
+    """Keeps the problem of the trial the env is playing (from the reset ``info``)."""
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.problem = info["problem_id"]
+        return obs, info
+
+
+def test_diagnose_gives_each_trial_its_own_problems_code():
+    model = small_model(gym.make("MetaBus-v0"))
+    envs = [_CurrentProblem(gym.make("MetaBus-v0", split="test")) for _ in range(3)]
+    problems = [3, 40, 41, 100, 200, 7, 9]
+    calls = []
+
+    def features_of(ids):  # what the agent asks e(T) of, beside what each env plays
+        calls.append((np.asarray(ids).tolist(), [getattr(env, "problem", None) for env in envs]))
+        return th.as_tensor(model.problem_table[np.asarray(ids)])
+
+    model._problem_features = features_of
+    diagnose(model, envs, n_trials=7, seed=1, problem_ids=problems, n_envs=3)
+    steps = [(asked, played) for asked, played in calls if len(asked) == len(envs)]  # not the split's table
+    assert len(steps) > 2 * 20 and all(asked == played for asked, played in steps)
+    assert {p for asked, _ in steps for p in asked} == set(problems)  # trials of unequal length end apart
+
+
 def test_save_load_same_actions_vec_envs_and_callbacks(tmp_path):
     venv = make_vec_env(CueMemoryEnv, n_envs=2, seed=0)
     model = small_model(venv, learning_starts=10)
@@ -316,3 +369,4 @@ def test_import_solves_a_memory_task():
     model.learn(4000)
     result = evaluate_meta(model, CueMemoryEnv(split="test"), n_trials=100)
     assert result.mean >= 0.9
+    # the auxiliary loss brought the history's code near the problem's, and both codes serve

@@ -13,7 +13,7 @@ import numpy as np
 
 from dream_envs import BatchTrialAgent, ScriptedAgent, SingleTrialAgent
 
-__all__ = ["PolicyAgent", "PolicyBatchAgent", "as_batch_trial_agent", "as_trial_agent"]
+__all__ = ["PolicyAgent", "PolicyBatchAgent", "TrialNumbering", "as_batch_trial_agent", "as_trial_agent"]
 
 
 class PolicyBatchAgent(BatchTrialAgent):
@@ -48,6 +48,28 @@ class PolicyBatchAgent(BatchTrialAgent):
         )
         self.episode_start[:] = False
         return np.asarray(action).reshape(-1)
+
+
+class TrialNumbering:
+    """Numbers the trials a batch agent plays, 0, 1, ... in the order they start (counted at their
+    first action, in the order :func:`~dream_envs.play_trials_batched` starts them), from the
+    agent's construction on: ``trial[i]`` is slot i's. A diagnostic that hands its agent trial k's
+    problem (``problem_ids[k]``, the trial runner's ``problem_ids=``) reads it this way."""
+
+    _trials_started = 0
+
+    def reset_numbering(self, n_envs: int) -> None:
+        self.trial = np.full(n_envs, -1, dtype=np.int64)
+        self._starting = list(range(n_envs))
+
+    def note_starts(self, idx: np.ndarray) -> None:
+        self._starting.extend(int(i) for i in idx)
+
+    def number_new_trials(self) -> None:
+        """Give the trials started since the last call their numbers (call at the start of ``act``)."""
+        for i in self._starting:
+            self.trial[i], self._trials_started = self._trials_started, self._trials_started + 1
+        self._starting = []
 
 
 class PolicyAgent(SingleTrialAgent):

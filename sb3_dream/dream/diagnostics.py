@@ -49,10 +49,12 @@ import numpy as np
 import torch as th
 
 from dream_envs import EXPLORATION, ScriptedAgent, SingleTrialAgent, make_oracle
-from dream_envs.checks import check_choice, check_positive_int
+from dream_envs.checks import check_choice
+from sb3_dream.common.agents import TrialNumbering
+from sb3_dream.common.codes import mean_pair_sq_distance
 from sb3_dream.dream.acting import DreamBatchTrialAgent
 from sb3_dream.dream.dream import DREAM
-from sb3_dream.evaluation import evaluate_meta, exhaustive_cases, make_envs
+from sb3_dream.evaluation import evaluate_meta, privileged_trials, trial_problem_ids  # noqa: F401 (re-exported)
 
 
 @dataclass
@@ -92,7 +94,7 @@ class DreamDiagnosis:
 Z_SOURCES = ("g", "f", "f_noisy")
 
 
-class PrivilegedBatchAgent(DreamBatchTrialAgent):
+class PrivilegedBatchAgent(DreamBatchTrialAgent, TrialNumbering):
     """Greedy DREAM that records g(tau^exp) per trial and, with ``z_source`` "f" or "f_noisy", acts on
     f(T) or on z ~ N(f(T), rho^2 I) (noise drawn from ``seed``) of trial k's problem
     ``problem_ids[k % len(problem_ids)]``: a diagnostic (it is handed the problem IDs), never a
@@ -120,29 +122,25 @@ class PrivilegedBatchAgent(DreamBatchTrialAgent):
         self.f = model.encode(ids, noisy=z_source == "f_noisy", generator=generator)
         self.g: Dict[int, np.ndarray] = {}  # trial -> g(tau^exp)
         self.trajectories: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}  # trial -> (s_0..s_T, a_0..a_T-1)
-        self._trials_started = 0
         super().__init__(model, deterministic=True)
 
     def reset(self, n_envs: int) -> None:
         if self.explorers is not None and len(self.explorers) < n_envs:
             raise ValueError(f"explorers has {len(self.explorers)} agents for {n_envs} slots: pass one per slot")
         super().reset(n_envs)
-        self.trial = np.full(n_envs, -1, dtype=np.int64)
-        self._starting = list(range(n_envs))
+        self.reset_numbering(n_envs)
         for explorer in (self.explorers or [])[:n_envs]:
             explorer.reset()
 
     def start_trials(self, idx: np.ndarray) -> None:
         super().start_trials(idx)
-        self._starting.extend(int(i) for i in idx)
+        self.note_starts(idx)
         if self.explorers is not None:
             for i in idx:
                 self.explorers[i].reset()
 
     def act(self, obs: Dict[str, np.ndarray], infos: Sequence[Dict[str, Any]]) -> np.ndarray:
-        for i in self._starting:
-            self.trial[i], self._trials_started = self._trials_started, self._trials_started + 1
-        self._starting = []
+        self.number_new_trials()
         actions, explored = self.step(obs, infos)
         for i in explored:
             k = int(self.trial[i])
@@ -197,20 +195,6 @@ def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
     return shares
 
 
-def trial_problem_ids(
-    split_ids: Sequence[int], n_trials: int, seed: int = 0, problem_ids: Optional[Sequence[int]] = None
-) -> np.ndarray:
-    """The problem of each of ``n_trials`` trials, as :func:`diagnose` plays them: ``problem_ids``
-    cycled, or by default drawn uniformly from ``split_ids`` with ``seed``. Hand the result to
-    :class:`PrivilegedAgent` (or :class:`PrivilegedBatchAgent`) and to the trial runner
-    (``problem_ids=``) to play the same trials."""
-    if problem_ids is None:
-        return np.random.default_rng(seed).choice(np.asarray(split_ids), size=n_trials)
-    if len(problem_ids) == 0:
-        raise ValueError("problem_ids must not be empty")
-    return np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
-
-
 def _privileged_trials(
     model: DREAM,
     env: Union[str, gym.Env],
@@ -222,21 +206,10 @@ def _privileged_trials(
     n_envs: int,
     exhaustive: bool = False,
 ) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
-    """Checks the arguments of :func:`diagnose` and :func:`exploration_gains`, makes the envs and
-    draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial k's problem).
-    ``exhaustive``: trial k's problem is that of the split's (problem, instruction) pair k (cycled,
-    whole passes, as :func:`~sb3_dream.evaluation.evaluate_meta` pins them)."""
+    """:func:`~sb3_dream.evaluation.privileged_trials` for :func:`diagnose` and :func:`exploration_gains`."""
     if not isinstance(model, DREAM):
         raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
-    n_trials = check_positive_int("n_trials", n_trials)
-    n_envs = check_positive_int("n_envs", n_envs)
-    if exhaustive and problem_ids is not None:
-        raise ValueError("problem_ids and exhaustive=True both pin the trials' problems: pass one of them")
-    envs, made = make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
-    split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))  # the envs checked ``split``
-    if exhaustive:
-        return envs, made, split_ids, exhaustive_cases(envs[0], split, n_trials)[0]
-    return envs, made, split_ids, trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+    return privileged_trials(env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive)
 
 
 def diagnose(
@@ -296,17 +269,13 @@ def diagnose(
 
     optimal = results.get("optimal_exploration")
     f_split = model.encode(split_ids, noisy=False)
-    sq_norms = (f_split**2).sum(axis=1)
-    # mean over ordered pairs T != T' of ||f(T) - f(T')||^2, without the [n, n, z] tensor
-    n = len(split_ids)
-    pair_sum = 2 * n * sq_norms.sum() - 2 * (f_split.sum(axis=0) ** 2).sum()
     return DreamDiagnosis(
         return_g=results["g"].mean,
         return_f=results["f"].mean,
         return_f_noisy=results["f_noisy"].mean if "f_noisy" in results else None,
         decoder_error=decoder_error(agents["g"]),
         f_norm_sq=float(weights @ (f**2).sum(axis=1)),
-        f_spread=float(pair_sum / max(1, n * (n - 1))),
+        f_spread=mean_pair_sq_distance(f_split),
         f_variance_by_feature=f_variance_by_feature(f_split, features),
         exploration_length=results["g"].mean_exploration_length,
         n_trials=n_trials,

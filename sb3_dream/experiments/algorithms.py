@@ -259,6 +259,16 @@ def _import_class() -> type:
     return IMPORT
 
 
+def _diagnose_import(model: Any, run: "Run", config: "RunConfig", tag: str) -> Dict[str, Any]:
+    """The final model's :func:`sb3_dream.import_dqn.diagnose`: its return with z = e(T) beside
+    meta-test's, and how far e(tau_:t) stays from e(T) (drawn trials, also with ``--eval-exhaustive``)."""
+    from sb3_dream.import_dqn import diagnose
+
+    diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.eval_kwargs)
+    print(f"[{tag}] diagnosis: {diagnosis.text()}", flush=True)
+    return {"diagnosis": diagnosis.as_dict()}
+
+
 def _varibad_class() -> type:
     from sb3_dream.varibad import VariBAD
 
@@ -269,7 +279,9 @@ register_algorithm(_dream_spec("dream", bottleneck=True))
 register_algorithm(_dream_spec("dream_no_bottleneck", bottleneck=False))  # the paper's ablation
 register_algorithm(AlgorithmSpec("rl2dqn", _rl2dqn_class, RL2DQN_PRESETS, "rl2dqn_kwargs"))  # the RL² baseline
 register_rewarded_exploration_variant("rl2dqn")  # e_rl2dqn: E-RL², the paper's dashed RL² line
-register_algorithm(AlgorithmSpec("import_dqn", _import_class, IMPORT_PRESETS, "import_kwargs"))  # the IMPORT baseline
+register_algorithm(  # the IMPORT baseline
+    AlgorithmSpec("import_dqn", _import_class, IMPORT_PRESETS, "import_kwargs", report=_diagnose_import)
+)
 register_rewarded_exploration_variant("import_dqn")  # e_import_dqn: the paper's dashed IMPORT line
 register_algorithm(AlgorithmSpec("varibad", _varibad_class, VARIBAD_PRESETS, "varibad_kwargs"))  # the VARIBAD baseline
 register_rewarded_exploration_variant("varibad")  # e_varibad: the paper's dashed VARIBAD line

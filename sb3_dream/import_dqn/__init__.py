@@ -7,15 +7,19 @@ from sb3_dream.import_dqn.import_dqn import (
     ProblemSequenceSamples,
     import_aux_loss,
 )
+from sb3_dream.import_dqn.diagnostics import IMPORTDiagnosis, ProblemCodeBatchAgent, diagnose
 from sb3_dream.import_dqn.policies import CnnLstmPolicy, IMPORTPolicy, IMPORTQNetwork, MultiInputLstmPolicy
 
 __all__ = [
     "CnnLstmPolicy",
     "IMPORT",
+    "IMPORTDiagnosis",
     "IMPORTPolicy",
     "IMPORTQNetwork",
     "MultiInputLstmPolicy",
+    "ProblemCodeBatchAgent",
     "ProblemSequenceReplayBuffer",
     "ProblemSequenceSamples",
+    "diagnose",
     "import_aux_loss",
 ]
