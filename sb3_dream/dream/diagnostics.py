@@ -195,21 +195,9 @@ def f_variance_by_feature(f: np.ndarray, features: np.ndarray) -> List[float]:
     return shares
 
 
-def _privileged_trials(
-    model: DREAM,
-    env: Union[str, gym.Env],
-    n_trials: int,
-    split: str,
-    seed: int,
-    env_kwargs: Optional[Dict[str, Any]],
-    problem_ids: Optional[Sequence[int]],
-    n_envs: int,
-    exhaustive: bool = False,
-) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
-    """:func:`~sb3_dream.evaluation.privileged_trials` for :func:`diagnose` and :func:`exploration_gains`."""
+def _check_dream(model: Any) -> None:
     if not isinstance(model, DREAM):
         raise TypeError(f"model must be a DREAM model, got {type(model).__name__}")
-    return privileged_trials(env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive)
 
 
 def diagnose(
@@ -237,8 +225,9 @@ def diagnose(
         ``n_trials`` trials, and every mean weighted by the pairs' probabilities, as
         :func:`~sb3_dream.evaluation.evaluate_meta` does (``n_trials`` of the result: the trials played).
     """
-    envs, made, split_ids, problem_ids = _privileged_trials(
-        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
+    _check_dream(model)
+    envs, made, split_ids, problem_ids = privileged_trials(
+        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
     )
     n_trials = len(problem_ids)
     trial_env = envs[0].unwrapped
@@ -331,8 +320,9 @@ def exploration_gains(
     :param exhaustive: the trials of :func:`diagnose` with ``exhaustive=True`` (every (problem,
         instruction) pair of the split; the gains themselves are not weighted).
     """
-    envs, made, _, problem_ids = _privileged_trials(
-        model, env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
+    _check_dream(model)
+    envs, made, _, problem_ids = privileged_trials(
+        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
     )
     explorers = None if explorer is None else [explorer(e) for e in envs]
     agent = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
