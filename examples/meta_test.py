@@ -211,9 +211,9 @@ def main() -> None:
         for path, model in models.items():
             prefix = "" if len(models) == 1 else f"{path} "
             if isinstance(model, IMPORT):
-                if args.exhaustive:
-                    raise SystemExit("--diagnose of an IMPORT model draws its trials: leave out --exhaustive")
-                d = diagnose_import(model, args.env, args.trials, args.split, args.seed, env_kwargs=env_kwargs)
+                d = diagnose_import(
+                    model, args.env, args.trials, args.split, args.seed, env_kwargs, exhaustive=args.exhaustive
+                )
                 print(f"  {prefix}diagnosis: {d.text()}")
                 continue
             if not isinstance(model, DREAM):

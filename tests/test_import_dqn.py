@@ -277,6 +277,11 @@ def test_diagnose_meta_tests_on_the_history_and_acts_on_the_problem_code_when_as
     assert 0 < plain.distance_execution and 0 < plain.problem_spread
     with pytest.raises(TypeError, match="IMPORT model"):
         diagnose(RL2DQN(gym.make("MetaBus-v0")), "MetaBus-v0")
+    # exhaustive: every held-out (problem, instruction) pair, weighted as evaluate_meta weights them
+    model = small_model(gym.make("MetaBus-v0", variant="map"))
+    exact = diagnose(model, "MetaBus-v0", n_trials=4, n_envs=4, exhaustive=True, env_kwargs={"variant": "map"})
+    meta_test = evaluate_meta(model, "MetaBus-v0", n_trials=4, n_envs=4, exhaustive=True, env_kwargs={"variant": "map"})
+    assert exact.return_history == pytest.approx(meta_test.mean) and exact.n_trials == meta_test.n_trials
 
 
 class _CurrentProblem(gym.Wrapper):

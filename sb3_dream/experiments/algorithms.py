@@ -261,10 +261,16 @@ def _import_class() -> type:
 
 def _diagnose_import(model: Any, run: "Run", config: "RunConfig", tag: str) -> Dict[str, Any]:
     """The final model's :func:`sb3_dream.import_dqn.diagnose`: its return with z = e(T) beside
-    meta-test's, and how far e(tau_:t) stays from e(T) (drawn trials, also with ``--eval-exhaustive``)."""
+    meta-test's, and how far e(tau_:t) stays from e(T)."""
     from sb3_dream.import_dqn import diagnose
 
-    diagnosis = diagnose(model, run.env.env_id, n_trials=config.eval_trials, env_kwargs=run.eval_kwargs)
+    diagnosis = diagnose(
+        model,
+        run.env.env_id,
+        n_trials=config.eval_trials,
+        env_kwargs=run.eval_kwargs,
+        exhaustive=config.eval_exhaustive,
+    )
     print(f"[{tag}] diagnosis: {diagnosis.text()}", flush=True)
     return {"diagnosis": diagnosis.as_dict()}
 

@@ -8,9 +8,11 @@ the same greedy meta-test trials twice and compares:
 * ``return_history``: meta-test, z = e(tau_:t) (what :func:`~sb3_dream.evaluation.evaluate_meta` measures);
 * ``return_problem``: z = e(T) of the trial's true problem at every step (privileged, as the
   policy acts in half of its training trials);
-* ``distance_exploration`` and ``distance_execution``: ||e(tau_:t) - e(T)||^2 averaged over the
-  exploration steps and over the execution steps of the z = e(tau_:t) trials, read against
-  ``problem_spread``, ||e(T) - e(T')||^2 averaged over pairs of the split's problems.
+* ``distance_exploration`` and ``distance_execution``: ||e(tau_:t) - e(T)||^2 averaged over each
+  z = e(tau_:t) trial's exploration steps and over its execution steps, then over the trials as
+  the returns are (uniformly, or by each (problem, instruction) pair's probability with
+  ``exhaustive``), read against ``problem_spread``, ||e(T) - e(T')||^2 averaged over pairs of the
+  split's problems.
 
 ``return_problem`` well above ``return_history`` with distances of the order of the spread: the
 history embedding has not come near the problem's, and the policy's skill with e(T) does not carry
@@ -72,8 +74,14 @@ class ProblemCodeBatchAgent(RL2BatchTrialAgent, TrialNumbering):
     def __init__(self, model: IMPORT, problem_ids: Sequence[int], use_problem: bool) -> None:
         self.problem_ids = np.asarray(problem_ids, dtype=np.int64)
         self.use_problem = bool(use_problem)
-        self.distances: Dict[str, List[float]] = {"exploration": [], "execution": []}
+        # trial -> its steps' ||e(tau_:t) - e(T)||^2, by phase
+        self.distances: Dict[str, Dict[int, List[float]]] = {"exploration": {}, "execution": {}}
         super().__init__(model, deterministic=True)
+
+    def mean_distances(self, phase: str, weights: np.ndarray) -> float:
+        """Each trial's mean distance over its ``phase`` steps, averaged with the trials' ``weights``."""
+        per_trial = self.distances[phase]
+        return float(sum(w * np.mean(per_trial[k]) for k, w in enumerate(weights) if k in per_trial))
 
     def reset(self, n_envs: int) -> None:
         super().reset(n_envs)
@@ -101,7 +109,8 @@ class ProblemCodeBatchAgent(RL2BatchTrialAgent, TrialNumbering):
         phases = np.asarray(obs["phase"]).reshape(n, -1)[:, 0]
         for i in range(n):
             if infos[i]:  # a slot with no trial left has an empty info
-                self.distances["exploration" if phases[i] == EXPLORATION else "execution"].append(float(distance[i]))
+                phase = "exploration" if phases[i] == EXPLORATION else "execution"
+                self.distances[phase].setdefault(int(self.trial[i]), []).append(float(distance[i]))
         self.state = (h.cpu().numpy(), c.cpu().numpy())
         self.episode_start[:] = False
         return q.argmax(dim=-1).cpu().numpy()
@@ -116,6 +125,7 @@ def diagnose(
     env_kwargs: Optional[Dict[str, Any]] = None,
     problem_ids: Optional[Sequence[int]] = None,
     n_envs: int = 16,
+    exhaustive: bool = False,
 ) -> IMPORTDiagnosis:
     """Meta-test ``model`` on the same ``n_trials`` trials of ``split`` with z = e(tau_:t) and with
     z = e(T); see the module docstring for how to read the result.
@@ -123,30 +133,35 @@ def diagnose(
     :param problem_ids: trial k's problem is ``problem_ids[k % len(problem_ids)]``; by default
         problems are drawn uniformly from ``split`` with ``seed``.
     :param n_envs: trials played side by side (an env ID is made that many times).
+    :param exhaustive: every (problem, instruction) pair of the split, in whole passes of at least
+        ``n_trials`` trials, every mean weighted by the pairs' probabilities, as
+        :func:`~sb3_dream.evaluation.evaluate_meta` does.
     """
     if not isinstance(model, IMPORT):
         raise TypeError(f"model must be an IMPORT model, got {type(model).__name__}")
     envs, made, split_ids, problem_ids = privileged_trials(
-        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs
+        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
     )
+    pinned = None if exhaustive else problem_ids  # exhaustive: evaluate_meta pins the same pairs
     try:
         agents, results = {}, {}
         for use_problem in (False, True):
             agents[use_problem] = ProblemCodeBatchAgent(model, problem_ids, use_problem)
             results[use_problem] = evaluate_meta(
-                agents[use_problem], envs, len(problem_ids), split, seed=seed, problem_ids=problem_ids, n_envs=len(envs)
-            )
+                agents[use_problem], envs, len(problem_ids), split, seed=seed, problem_ids=pinned,
+                n_envs=len(envs), exhaustive=exhaustive,
+            )  # fmt: skip
     finally:
         for e in made:
             e.close()
     with th.no_grad():
         e_split = model.q_net.problem_embedder(model._problem_features(split_ids)).cpu().numpy()
-    distances = agents[False].distances
+    meta_test, weights = agents[False], results[False].trial_weights
     return IMPORTDiagnosis(
         return_history=results[False].mean,
         return_problem=results[True].mean,
-        distance_exploration=float(np.mean(distances["exploration"])),
-        distance_execution=float(np.mean(distances["execution"])),
+        distance_exploration=meta_test.mean_distances("exploration", weights),
+        distance_execution=meta_test.mean_distances("execution", weights),
         problem_spread=mean_pair_sq_distance(e_split),
         exploration_length=results[False].mean_exploration_length,
         n_trials=len(problem_ids),
