@@ -205,19 +205,18 @@ def _choose_parallel_updates(model: Any, overrides: Dict[str, Any], concurrent_r
         model.parallel_updates = "auto" if concurrent_runs == 1 else False
 
 
+def _evaluation_trials(run: "Run", config: "RunConfig") -> Dict[str, Any]:
+    """The arguments of a diagnosis that plays the trials the run's held-out evaluation plays."""
+    return {"n_trials": config.eval_trials, "env_kwargs": run.eval_kwargs, "exhaustive": config.eval_exhaustive}
+
+
 def _diagnose_dream(model: Any, run: "Run", config: "RunConfig", tag: str) -> Dict[str, Any]:
     """The final model's :func:`sb3_dream.dream.diagnose` and :func:`sb3_dream.dream.exploration_gains`."""
     from sb3_dream.dream import diagnose
 
     # Which side limits the final model: meta-test vs the execution policy given z = f(T)
     # (and vs the decoder reading the env's optimal exploration).
-    diagnosis = diagnose(
-        model,
-        run.env.env_id,
-        n_trials=config.eval_trials,
-        env_kwargs=run.eval_kwargs,
-        exhaustive=config.eval_exhaustive,
-    )
+    diagnosis = diagnose(model, run.env.env_id, **_evaluation_trials(run, config))
     # What its explorer is paid for, step by step (Equation 5), on the same trials.
     gains = diagnosis.exploration_gains
     print(
@@ -264,13 +263,7 @@ def _diagnose_import(model: Any, run: "Run", config: "RunConfig", tag: str) -> D
     meta-test's, and how far e(tau_:t) stays from e(T)."""
     from sb3_dream.import_dqn import diagnose
 
-    diagnosis = diagnose(
-        model,
-        run.env.env_id,
-        n_trials=config.eval_trials,
-        env_kwargs=run.eval_kwargs,
-        exhaustive=config.eval_exhaustive,
-    )
+    diagnosis = diagnose(model, run.env.env_id, **_evaluation_trials(run, config))
     print(f"[{tag}] diagnosis: {diagnosis.text()}", flush=True)
     return {"diagnosis": diagnosis.as_dict()}
 
