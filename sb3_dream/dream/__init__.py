@@ -6,10 +6,10 @@ from sb3_dream.dream.diagnostics import (
     diagnose,
     exploration_gains,
     f_variance_by_feature,
-    trial_problem_ids,
 )
 from sb3_dream.dream.dream import DREAM
 from sb3_dream.dream.policies import DreamPolicy
+from sb3_dream.evaluation import trial_problem_ids  # where it lives; kept importable from here
 
 __all__ = [
     "DREAM",

@@ -54,7 +54,7 @@ from sb3_dream.common.agents import TrialNumbering
 from sb3_dream.common.codes import mean_pair_sq_distance
 from sb3_dream.dream.acting import DreamBatchTrialAgent
 from sb3_dream.dream.dream import DREAM
-from sb3_dream.evaluation import evaluate_meta, privileged_trials, trial_problem_ids  # noqa: F401 (re-exported)
+from sb3_dream.evaluation import evaluate_meta, privileged_trials
 
 
 @dataclass
