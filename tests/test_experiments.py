@@ -436,6 +436,61 @@ def test_summary_averages_the_last_tenth_of_each_run_besides_its_final_evaluatio
     assert "| MetaBandit-v0 | dream | test | 2 | 0.400 ± 0.400 | 0.600 | - | 0.234 | 100 |" in table
 
 
+def _finished_run(out, run, returns, splits=("test",)):
+    """A finished run's record and curves under ``out``: ``returns`` at env steps 0, 100, ..."""
+    run.info_path(out).parent.mkdir(parents=True, exist_ok=True)
+    record = {"algo": run.algo, "env": run.env.env_id, "env_kwargs": run.env.env_kwargs, "seed": run.seed}
+    run.info_path(out).write_text(json.dumps(record))
+    for split in splits:
+        with open(run.curve_path(out, split), "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(CURVE_COLUMNS)
+            writer.writerows([[100 * k, k, value, 0.0, 5.0] for k, value in enumerate(returns)])
+
+
+def test_also_reports_the_runs_of_other_folders_beside_those_under_out(tmp_path, capsys):
+    env = EnvSpec.parse("MetaBandit-v0")
+    out, long, old = tmp_path / "baselines", tmp_path / "long", tmp_path / "old"
+    _finished_run(out, Run("rl2dqn", env, 0), [0.0, 0.2])
+    _finished_run(long, Run("dream", env, 0), [0.0, 0.5, 0.7, 0.9])  # a longer run
+    _finished_run(long, Run("dream", env, 1), [0.0, 0.5, 0.7, 0.7])
+    _finished_run(old, Run("dream", env, 0), [0.0, -1.0])  # another DREAM seed 0: not taken
+    _finished_run(old, Run("varibad", env, 0), [0.0, 0.1])
+    argv = ["--envs", "MetaBandit-v0", "--algos", "dream", "--seeds", "0", "1", "--summary-only", "--no-oracle"]
+    argv += ["--no-plot", "--out", str(out)]
+
+    experiments.main([*argv, "--also", str(long), f"{old}:varibad"])
+    rows = {row["algo"]: row for row in csv.DictReader(open(out / "summary.csv"))}
+    assert set(rows) == {"dream", "rl2dqn", "varibad"}
+    assert rows["dream"]["seeds"] == "2" and float(rows["dream"]["final_return_mean"]) == pytest.approx(0.8)
+    assert rows["dream"]["env_steps"] == "300" and rows["rl2dqn"]["env_steps"] == "100"
+    assert float(rows["varibad"]["final_return_mean"]) == pytest.approx(0.1)
+    assert not (out / env.tag / "dream_seed0.csv").exists()  # read, not copied
+    folders = experiments.report_folders([], out, [(long, ()), (old, ("varibad",))])
+    assert folders[Run("dream", env, 1)] == long and folders[Run("rl2dqn", env, 0)] == out
+
+    # DREAM seed 0 is finished in two of the folders: which one is meant must be said.
+    with pytest.raises(SystemExit, match="dream seed 0 on MetaBandit-v0 is finished under both"):
+        experiments.main([*argv, "--also", str(long), str(old)])
+    for bad, match in ((f"{old}:", "DIR or DIR:ALGO"), (f"{old}:dreamy", "unknown algorithm 'dreamy'"),
+                       (str(tmp_path / "none"), "no such folder")):  # fmt: skip
+        with pytest.raises(SystemExit, match=match):
+            experiments.main([*argv, "--also", bad])
+
+    pytest.importorskip("matplotlib")
+    plt = pytest.importorskip("matplotlib.pyplot")
+    figures = []
+    close = plt.close
+    try:
+        plt.close = lambda fig=None: figures.append(fig)
+        experiments.plot_curves(list(folders), RunConfig(), out, folders=folders)
+    finally:
+        plt.close = close
+    lines = {line.get_label(): line for line in figures[0].axes[0].get_lines()}
+    np.testing.assert_allclose(lines["dream (2 seeds)"].get_ydata(), [0.0, 0.5, 0.7, 0.8])
+    np.testing.assert_allclose(lines["varibad (1 seed)"].get_ydata(), [0.0, 0.1])
+
+
 def test_finished_runs_are_found_from_their_records_whatever_split_they_evaluated(tmp_path):
     train_only = Run("rl2dqn", EnvSpec.parse("MetaBus-v0:variant=map"), 3)
     unfinished = Run("dream", EnvSpec.parse("MetaBus-v0"), 0)  # a record without any curve

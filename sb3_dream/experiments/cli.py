@@ -75,7 +75,12 @@ filesystem that every node mounts at the same path.
 
 The summary and the figure cover the runs asked for and every other finished run under ``--out``
 (runs made by other commands into it: other seeds, envs or sittings); ``--summary-only`` makes
-them without training anything.
+them without training anything. ``--also DIR[:ALGO,...]`` adds the finished runs of other folders
+(of the named algorithms only, where named) to the summary and the figure, e.g. one algorithm's long
+runs beside the baselines' shorter ones (Figure 6 from three folders)::
+
+    python -m sb3_dream.experiments --envs MetaCook-v0 --eval-splits test train --summary-only \\
+        --out results/cook_baselines --also results/cook_256_c001_lr1e5:dream results/cook_undo:rl2dqn
 
 **Algorithms:** ``dream`` (:class:`~sb3_dream.DREAM`), ``dream_no_bottleneck``
 (``DREAM(bottleneck=False)``, the paper's ablation), ``rl2dqn``
@@ -112,7 +117,14 @@ from sb3_dream.experiments.algorithms import ALGORITHMS, override_fields, preset
 from sb3_dream.experiments.backends import LocalPool
 from sb3_dream.experiments.config import EnvSpec, RunConfig, parse_kwargs
 from sb3_dream.experiments.lock import FolderLocked
-from sb3_dream.experiments.report import oracle_return, plot_curves, summarize, with_finished_runs, write_summary
+from sb3_dream.experiments.report import (
+    oracle_return,
+    parse_folder_spec,
+    plot_curves,
+    report_folders,
+    summarize,
+    write_summary,
+)
 from sb3_dream.experiments.runner import check_eval_splits, check_presets, plan_runs, run_experiments
 
 
@@ -227,6 +239,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="train nothing: summarize and plot the finished runs under --out (e.g. runs made by several "
         "commands into it)",
     )
+    parser.add_argument(
+        "--also",
+        nargs="+",
+        default=[],
+        metavar="DIR[:ALGO,...]",
+        help="the summary and the figure also cover the finished runs under DIR (only ALGO's, where named), "
+        "e.g. long runs of one algorithm made into another folder; they are read, not written",
+    )
     parser.add_argument("--no-oracle", action="store_true", help="skip the optimal scripted agent's return")
     return parser
 
@@ -262,6 +282,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
         backend = None if args.summary_only else _backend(args)
+        also = [parse_folder_spec(spec) for spec in args.also]
     except ValueError as error:
         raise SystemExit(f"error: {error}")
 
@@ -279,8 +300,12 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
         if backend is not None and args.backend == "ray":
             backend.close()
 
-    # The table and the figure cover every finished run under --out, not only this command's.
-    runs = with_finished_runs(runs, out)
+    # The table and the figure cover every finished run under --out (and --also), not only this command's.
+    try:
+        folders = report_folders(runs, out, also)
+    except (ValueError, FileNotFoundError) as error:
+        raise SystemExit(f"error: {error}")
+    runs = list(folders)
     oracles: Dict[Tuple[str, str], float] = {}
     if not args.no_oracle:
         for env in dict.fromkeys(run.env for run in runs):
@@ -288,11 +313,11 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
                 value = oracle_return(env, split, config.eval_trials, out, config.eval_exhaustive)
                 if value is not None:
                     oracles[(env.tag, split)] = value
-    table = write_summary(summarize(runs, config, out, oracles), out)
+    table = write_summary(summarize(runs, config, out, oracles, folders=folders), out)
     print(f"\n{table}\nwrote {out / 'summary.csv'} and {out / 'summary.md'}")
     if not args.no_plot:
         try:
-            print("wrote", plot_curves(runs, config, out, oracles))
+            print("wrote", plot_curves(runs, config, out, oracles, folders=folders))
         except ImportError:
             print("matplotlib is not installed: no figure (pip install matplotlib, or sb3-dream[dev])")
     failed = [r for r in records if r["status"] == "failed"]

@@ -44,6 +44,54 @@ def with_finished_runs(runs: Sequence[Run], out: pathlib.Path) -> List[Run]:
     return list(merged.values())
 
 
+def parse_folder_spec(spec: str) -> Tuple[pathlib.Path, Tuple[str, ...]]:
+    """``"DIR"`` or ``"DIR:ALGO,ALGO"`` -> ``(DIR, algorithms)`` (empty: every algorithm)."""
+    folder, colon, names = spec.partition(":")
+    algos = tuple(a for a in names.split(",") if a)
+    if not folder or (colon and not algos):
+        raise ValueError(f"--also takes DIR or DIR:ALGO[,ALGO...], got {spec!r}")
+    if not pathlib.Path(folder).is_dir():
+        raise ValueError(f"--also {spec!r}: no such folder {folder!r}")
+    unknown = [a for a in algos if a not in ALGORITHMS]
+    if unknown:
+        raise ValueError(f"--also {spec!r}: unknown algorithm {unknown[0]!r}; known: {', '.join(ALGORITHMS)}")
+    return pathlib.Path(folder), algos
+
+
+def report_folders(
+    runs: Sequence[Run], out: pathlib.Path, also: Sequence[Tuple[pathlib.Path, Sequence[str]]] = ()
+) -> Dict[Run, pathlib.Path]:
+    """The runs a report covers, each with the folder its files are under: ``runs`` and the other
+    finished runs under ``out`` (:func:`with_finished_runs`), then the finished runs under each
+    ``(folder, algorithms)`` of ``also`` (every algorithm's where none is named), so that one
+    figure compares runs made into several folders (e.g. DREAM's long runs beside the baselines').
+
+    A run asked for but absent from ``out`` is taken from the folder that has it; a run (env,
+    algorithm, seed) finished in two folders is an error naming both: name the algorithms to take
+    from each folder with ``DIR:ALGO``."""
+    folders: Dict[Tuple[str, str, int], Tuple[Run, pathlib.Path]] = {}
+    for run in with_finished_runs(runs, out):
+        folders[(run.env.tag, run.algo, run.seed)] = (run, pathlib.Path(out))
+    for folder, algos in also:
+        if not pathlib.Path(folder).is_dir():
+            raise FileNotFoundError(f"no such folder: {folder}")
+        for run in finished_runs(folder):
+            if algos and run.algo not in algos:
+                continue
+            key = (run.env.tag, run.algo, run.seed)
+            if key in folders and _has_curve(*folders[key]):
+                raise ValueError(
+                    f"{run.algo} seed {run.seed} on {run.env.label} is finished under both {folders[key][1]} and "
+                    f"{folder}: name the algorithms to take from each with DIR:ALGO"
+                )
+            folders[key] = (run, pathlib.Path(folder))
+    return dict(folders.values())
+
+
+def _has_curve(run: Run, folder: pathlib.Path) -> bool:
+    return any(run.curve_path(folder, split).exists() for split in all_splits())
+
+
 def load_curve(path: pathlib.Path) -> Dict[str, np.ndarray]:
     """A learning-curve CSV as arrays, one per column."""
     with open(path, newline="") as f:
@@ -133,6 +181,7 @@ def summarize(
     out: pathlib.Path,
     oracles: Optional[Dict[Tuple[str, str], float]] = None,
     pearl_ub: bool = True,
+    folders: Optional[Dict[Run, pathlib.Path]] = None,
 ) -> List[Dict[str, Any]]:
     """One row per (env, algo, split): the final return's mean and std over the finished seeds
     (numpy's std, ddof=0, as the figures' bands), the final env steps and the mean wall-clock,
@@ -141,14 +190,17 @@ def summarize(
 
     ``last_tenth_mean`` averages each seed's evaluations over the last tenth of its env steps, then
     the seeds: single greedy evaluations of a value-based agent swing, and one of them can
-    misrepresent where a run ended."""
+    misrepresent where a run ended.
+
+    Each run's files are under ``out``, or under ``folders[run]`` where given
+    (:func:`report_folders`)."""
     rows = []
     groups: Dict[Tuple[EnvSpec, str], List[Run]] = {}
     for run in runs:
         groups.setdefault((run.env, run.algo), []).append(run)
     for (env, algo), group in groups.items():
         for split in config.eval_splits:
-            curves = [load_curve(r.curve_path(out, split)) for r in group if r.curve_path(out, split).exists()]
+            curves = _curves(group, split, out, folders)
             row: Dict[str, Any] = {"env": env.label, "algo": algo, "split": split, "seeds": len(curves)}
             if curves:
                 finals = np.array([c["mean"][-1] for c in curves])
@@ -168,6 +220,14 @@ def summarize(
                     row["pearl_ub"] = value  # in the algorithm's exploration setting
             rows.append(row)
     return rows
+
+
+def _curves(
+    runs: Sequence[Run], split: str, out: pathlib.Path, folders: Optional[Dict[Run, pathlib.Path]]
+) -> List[Dict[str, np.ndarray]]:
+    """The ``split`` curves of those of ``runs`` that have one (under ``folders[run]`` or ``out``)."""
+    paths = [run.curve_path((folders or {}).get(run, out), split) for run in runs]
+    return [load_curve(path) for path in paths if path.exists()]
 
 
 SUMMARY_COLUMNS = (
@@ -227,13 +287,15 @@ def plot_curves(
     out: pathlib.Path,
     oracles: Optional[Dict[Tuple[str, str], float]] = None,
     pearl_ub: bool = True,
+    folders: Optional[Dict[Run, pathlib.Path]] = None,
 ) -> pathlib.Path:
     """``curves.png``: execution return vs env steps, mean +- std over seeds, one panel per env and
     split (the paper's Figures 5 and 6): the optimal return as a thin black line, and (``pearl_ub``,
     where :func:`dream_envs.pearl_ub` knows the env) PEARL-UB of the panel's split as a gray dotted
     line. As in the paper, the rewarded-exploration variants (``e_rl2dqn``: E-RL²) are dashed, in
     their algorithm's colour; a panel with one also gets PEARL-UB with rewarded exploration,
-    dash-dotted, where it differs."""
+    dash-dotted, where it differs. The runs' files are found as :func:`summarize` finds them; the
+    figure is written under ``out``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -248,8 +310,7 @@ def plot_curves(
     fig, axes = plt.subplots(n_rows, n_cols, figsize=(5 * n_cols, 3.6 * n_rows), squeeze=False)
     for ax, (env, split) in zip(axes.flat, panels):
         for algo in algos:
-            paths = [r.curve_path(out, split) for r in runs if r.env == env and r.algo == algo]
-            curves = [load_curve(p) for p in paths if p.exists()]
+            curves = _curves([r for r in runs if r.env == env and r.algo == algo], split, out, folders)
             if not curves:
                 continue
             n = min(len(c["mean"]) for c in curves)
