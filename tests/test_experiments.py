@@ -468,6 +468,8 @@ def test_also_reports_the_runs_of_other_folders_beside_those_under_out(tmp_path,
     assert not (out / env.tag / "dream_seed0.csv").exists()  # read, not copied
     folders = experiments.report_folders([], out, [(long, ()), (old, ("varibad",))])
     assert folders[Run("dream", env, 1)] == long and folders[Run("rl2dqn", env, 0)] == out
+    # in the registry's order, whichever folder a run came from
+    assert [(r.algo, r.seed) for r in folders] == [("dream", 0), ("dream", 1), ("rl2dqn", 0), ("varibad", 0)]
 
     # DREAM seed 0 is finished in two of the folders: which one is meant must be said.
     with pytest.raises(SystemExit, match="dream seed 0 on MetaBandit-v0 is finished under both"):

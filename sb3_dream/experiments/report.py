@@ -32,8 +32,13 @@ def finished_runs(out: pathlib.Path) -> List[Run]:
             continue  # not a run's record (an oracle's, say)
         if run.info_path(out) == path and any(run.curve_path(out, split).exists() for split in all_splits()):
             found.append(run)
-    order = {algo: k for k, algo in enumerate(ALGORITHMS)}
-    return sorted(found, key=lambda r: (r.env.tag, order.get(r.algo, len(order)), r.seed))
+    return sorted(found, key=_report_order)
+
+
+def _report_order(run: Run) -> Tuple[str, int, int]:
+    """Runs sort by env folder, then in the order the algorithms are registered, then by seed."""
+    order = list(ALGORITHMS)
+    return run.env.tag, order.index(run.algo) if run.algo in order else len(order), run.seed
 
 
 def with_finished_runs(runs: Sequence[Run], out: pathlib.Path) -> List[Run]:
@@ -62,9 +67,10 @@ def report_folders(
     runs: Sequence[Run], out: pathlib.Path, also: Sequence[Tuple[pathlib.Path, Sequence[str]]] = ()
 ) -> Dict[Run, pathlib.Path]:
     """The runs a report covers, each with the folder its files are under: ``runs`` and the other
-    finished runs under ``out`` (:func:`with_finished_runs`), then the finished runs under each
+    finished runs under ``out`` (:func:`with_finished_runs`), and the finished runs under each
     ``(folder, algorithms)`` of ``also`` (every algorithm's where none is named), so that one
-    figure compares runs made into several folders (e.g. DREAM's long runs beside the baselines').
+    figure compares runs made into several folders (e.g. DREAM's long runs beside the baselines');
+    sorted as :func:`finished_runs` sorts them.
 
     A run asked for but absent from ``out`` is taken from the folder that has it; a run (env,
     algorithm, seed) finished in two folders is an error naming both: name the algorithms to take
@@ -85,7 +91,7 @@ def report_folders(
                     f"{folder}: name the algorithms to take from each with DIR:ALGO"
                 )
             folders[key] = (run, pathlib.Path(folder))
-    return dict(folders.values())
+    return dict(sorted(folders.values(), key=lambda item: _report_order(item[0])))
 
 
 def _has_curve(run: Run, folder: pathlib.Path) -> bool:
