@@ -193,6 +193,48 @@ def trial_problem_ids(
     return np.resize(np.asarray(problem_ids, dtype=np.int64), n_trials)
 
 
+@dataclass
+class PrivilegedTrials:
+    """The trials of a diagnostic that hands its agent each trial's problem: made by
+    :func:`privileged_trials`, played by :meth:`play` as many times as the diagnostic has agents
+    (the same trials each time), closed by :meth:`close` or a ``with`` block.
+
+    ``problem_ids[k]`` is trial k's problem; ``split_ids`` the split's problem IDs.
+    """
+
+    envs: List[gym.Env]
+    made: List[gym.Env]  # the envs made here, which :meth:`close` closes
+    split_ids: np.ndarray
+    problem_ids: np.ndarray
+    split: str
+    seed: int
+    exhaustive: bool
+
+    def play(self, agent: Any) -> MetaEvalResult:
+        """:func:`evaluate_meta` of ``agent`` on these trials, side by side over the envs."""
+        return evaluate_meta(
+            agent,
+            self.envs,
+            len(self.problem_ids),
+            self.split,
+            seed=self.seed,
+            # exhaustive: evaluate_meta pins the same pairs itself
+            problem_ids=None if self.exhaustive else self.problem_ids,
+            n_envs=len(self.envs),
+            exhaustive=self.exhaustive,
+        )
+
+    def close(self) -> None:
+        for env in self.made:
+            env.close()
+
+    def __enter__(self) -> "PrivilegedTrials":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
 def privileged_trials(
     env: Union[str, gym.Env],
     n_trials: int,
@@ -202,11 +244,10 @@ def privileged_trials(
     problem_ids: Optional[Sequence[int]],
     n_envs: int,
     exhaustive: bool = False,
-) -> Tuple[List[gym.Env], List[gym.Env], np.ndarray, np.ndarray]:
+) -> PrivilegedTrials:
     """Checks the arguments of a diagnostic that hands its agent each trial's problem, makes the
-    envs and draws the trials' problems: (envs, the envs made here, the split's problem IDs, trial
-    k's problem). ``exhaustive``: trial k's problem is that of the split's (problem, instruction)
-    pair k (cycled, whole passes, as :func:`evaluate_meta` pins them)."""
+    envs and draws the trials' problems. ``exhaustive``: trial k's problem is that of the split's
+    (problem, instruction) pair k (cycled, whole passes, as :func:`evaluate_meta` pins them)."""
     n_trials = check_positive_int("n_trials", n_trials)
     n_envs = check_positive_int("n_envs", n_envs)
     if exhaustive and problem_ids is not None:
@@ -214,8 +255,10 @@ def privileged_trials(
     envs, made = make_envs(env, split, 1, env_kwargs, n_envs if exhaustive else min(n_envs, n_trials))
     split_ids = np.asarray(envs[0].unwrapped.problem_ids(split))  # the envs checked ``split``
     if exhaustive:
-        return envs, made, split_ids, exhaustive_cases(envs[0], split, n_trials)[0]
-    return envs, made, split_ids, trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+        trial_problems = exhaustive_cases(envs[0], split, n_trials)[0]
+    else:
+        trial_problems = trial_problem_ids(split_ids, n_trials, seed, problem_ids)
+    return PrivilegedTrials(envs, made, split_ids, np.asarray(trial_problems), split, seed, exhaustive)
 
 
 def evaluate_meta(

@@ -54,7 +54,7 @@ from sb3_dream.common.agents import TrialNumbering
 from sb3_dream.common.codes import mean_pair_sq_distance
 from sb3_dream.dream.acting import DreamBatchTrialAgent
 from sb3_dream.dream.dream import DREAM
-from sb3_dream.evaluation import evaluate_meta, privileged_trials
+from sb3_dream.evaluation import privileged_trials
 
 
 @dataclass
@@ -226,29 +226,18 @@ def diagnose(
         :func:`~sb3_dream.evaluation.evaluate_meta` does (``n_trials`` of the result: the trials played).
     """
     _check_dream(model)
-    envs, made, split_ids, problem_ids = privileged_trials(
-        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
-    )
+    with privileged_trials(env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive) as trials:
+        problem_ids, split_ids, trial_env = trials.problem_ids, trials.split_ids, trials.envs[0].unwrapped
+        results, agents = {}, {}
+        for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
+            agents[source] = PrivilegedBatchAgent(model, problem_ids, source, seed)
+            results[source] = trials.play(agents[source])
+        if hasattr(trial_env, "oracle"):  # custom trial envs may have none
+            explorers = [make_oracle(e) for e in trials.envs]
+            agents["optimal_exploration"] = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
+            results["optimal_exploration"] = trials.play(agents["optimal_exploration"])
+        features = trial_env.problem_feature_table()[split_ids]
     n_trials = len(problem_ids)
-    trial_env = envs[0].unwrapped
-
-    def play(agent: PrivilegedBatchAgent) -> Any:
-        pinned = None if exhaustive else problem_ids  # exhaustive: evaluate_meta pins the same pairs
-        return evaluate_meta(
-            agent, envs, n_trials, split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive
-        )
-
-    results, agents = {}, {}
-    for source in Z_SOURCES if model.encoder_noise else Z_SOURCES[:2]:
-        agents[source] = PrivilegedBatchAgent(model, problem_ids, source, seed)
-        results[source] = play(agents[source])
-    if hasattr(trial_env, "oracle"):  # custom trial envs may have none
-        explorers = [make_oracle(e) for e in envs]
-        agents["optimal_exploration"] = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
-        results["optimal_exploration"] = play(agents["optimal_exploration"])
-    features = trial_env.problem_feature_table()[split_ids]
-    for e in made:
-        e.close()
 
     f = agents["g"].f
     weights = results["g"].trial_weights  # uniform, or the pairs' probabilities when exhaustive
@@ -321,18 +310,11 @@ def exploration_gains(
         instruction) pair of the split; the gains themselves are not weighted).
     """
     _check_dream(model)
-    envs, made, _, problem_ids = privileged_trials(
-        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
-    )
-    explorers = None if explorer is None else [explorer(e) for e in envs]
-    agent = PrivilegedBatchAgent(model, problem_ids, "g", seed, explorers=explorers)
-    pinned = None if exhaustive else problem_ids
-    evaluate_meta(
-        agent, envs, len(problem_ids), split, seed=seed, problem_ids=pinned, n_envs=len(envs), exhaustive=exhaustive
-    )
-    for e in made:
-        e.close()
-    return _rewarded(model, problem_ids, agent)
+    with privileged_trials(env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive) as trials:
+        explorers = None if explorer is None else [explorer(e) for e in trials.envs]
+        agent = PrivilegedBatchAgent(model, trials.problem_ids, "g", seed, explorers=explorers)
+        trials.play(agent)
+    return _rewarded(model, trials.problem_ids, agent)
 
 
 @th.no_grad()

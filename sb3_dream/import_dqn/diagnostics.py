@@ -35,7 +35,7 @@ from dream_envs import EXPLORATION
 from sb3_dream.common.agents import TrialNumbering
 from sb3_dream.common.codes import mean_pair_sq_distance
 from sb3_dream.common.recurrent import reset_lstm_states
-from sb3_dream.evaluation import evaluate_meta, privileged_trials
+from sb3_dream.evaluation import privileged_trials
 from sb3_dream.import_dqn.import_dqn import IMPORT
 from sb3_dream.rl2dqn.rl2dqn import RL2BatchTrialAgent
 
@@ -139,21 +139,10 @@ def diagnose(
     """
     if not isinstance(model, IMPORT):
         raise TypeError(f"model must be an IMPORT model, got {type(model).__name__}")
-    envs, made, split_ids, problem_ids = privileged_trials(
-        env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive
-    )
-    pinned = None if exhaustive else problem_ids  # exhaustive: evaluate_meta pins the same pairs
-    try:
-        agents, results = {}, {}
-        for use_problem in (False, True):
-            agents[use_problem] = ProblemCodeBatchAgent(model, problem_ids, use_problem)
-            results[use_problem] = evaluate_meta(
-                agents[use_problem], envs, len(problem_ids), split, seed=seed, problem_ids=pinned,
-                n_envs=len(envs), exhaustive=exhaustive,
-            )  # fmt: skip
-    finally:
-        for e in made:
-            e.close()
+    with privileged_trials(env, n_trials, split, seed, env_kwargs, problem_ids, n_envs, exhaustive) as trials:
+        agents = {z: ProblemCodeBatchAgent(model, trials.problem_ids, z) for z in (False, True)}
+        results = {z: trials.play(agent) for z, agent in agents.items()}
+    split_ids, problem_ids = trials.split_ids, trials.problem_ids
     with th.no_grad():
         e_split = model.q_net.problem_embedder(model._problem_features(split_ids)).cpu().numpy()
     meta_test, weights = agents[False], results[False].trial_weights
