@@ -8,7 +8,7 @@ import pytest
 import dream_envs
 from dream_envs import RandomAgent
 from sb3_dream.common.agents import PolicyAgent, PolicyBatchAgent
-from sb3_dream.evaluation import MetaEvalCallback, MetaEvalResult, as_trial_agent, evaluate_meta
+from sb3_dream.evaluation import MetaEvalCallback, MetaEvalResult, as_trial_agent, evaluate_meta, privileged_trials
 
 
 class FirstActionModel:
@@ -187,3 +187,29 @@ def test_exhaustive_bad_input():
         MetaEvalCallback(DrawnBandit(split="test"), exhaustive=True)
     with pytest.raises(ValueError, match="instructions must come with problem_ids"):
         dream_envs.play_trials(gym.make("MetaBandit-v0"), RandomAgent(gym.spaces.Discrete(2)), 2, instructions=[[1]])
+
+
+@pytest.mark.parametrize("exhaustive", [False, True])
+def test_privileged_trials_play_the_same_pinned_trials_and_close_the_envs_they_made(monkeypatch, exhaustive):
+    closed = []
+    with privileged_trials("MetaCook-v0", 7, "test_problems", 3, None, None, 3, exhaustive) as trials:
+        assert len(trials.made) == 3 and trials.envs == trials.made
+        assert set(trials.problem_ids) <= set(trials.split_ids.tolist())
+        for env in trials.made:
+            monkeypatch.setattr(env, "close", lambda env=env: closed.append(env))
+        oracle = dream_envs.make_oracle(trials.envs[0])
+        first, second = trials.play(oracle), trials.play(oracle)
+        assert not closed
+    assert closed == trials.made
+    np.testing.assert_array_equal(first.problem_ids, trials.problem_ids)
+    np.testing.assert_array_equal(second.problem_ids, trials.problem_ids)
+    np.testing.assert_array_equal(first.returns, second.returns)  # the oracle is deterministic
+    assert len(trials.problem_ids) == (25 if exhaustive else 7)  # exhaustive: a whole pass of the 25 pairs
+
+
+def test_privileged_trials_leave_a_given_env_open(monkeypatch):
+    env = __import__("gymnasium").make("MetaBandit-v0", split="test")
+    with privileged_trials(env, 4, "test", 0, None, None, 16) as trials:
+        assert trials.envs == [env] and trials.made == []
+        monkeypatch.setattr(env, "close", lambda: pytest.fail("closed an env the caller made"))
+        trials.play(dream_envs.make_oracle(env))
