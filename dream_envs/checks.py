@@ -3,7 +3,7 @@ argument and the values it accepts."""
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Sequence, Tuple
 
 import numpy as np
 
@@ -23,6 +23,15 @@ def check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return int(value)
+
+
+def check_layer_sizes(name: str, value: Any) -> Tuple[int, ...]:
+    """The layer sizes of a network as a tuple, or a ``ValueError`` naming ``name`` unless ``value``
+    is a non-empty list or tuple of positive integers."""
+    positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
+    if not (isinstance(value, (list, tuple)) and len(value) > 0 and all(map(positive, value))):
+        raise ValueError(f"{name} must be a non-empty list or tuple of positive ints, got {value!r}")
+    return tuple(int(h) for h in value)
 
 
 def check_bool(name: str, value: Any) -> bool:

@@ -120,6 +120,24 @@ def test_the_network_builds_only_what_its_q_values_read(monkeypatch):
     assert net.head.value.in_features == net.q_hidden[0].out_features  # the head reads [e(s); e(i); z]
 
 
+def test_q_hidden_dim_takes_several_layers_that_train_save_and_load(tmp_path):
+    model = small_model(CueMemoryEnv(), learning_starts=10, policy_kwargs={**SMALL_NET, "q_hidden_dim": (24, 12)})
+    linears = [m for m in model.q_net.q_hidden if isinstance(m, th.nn.Linear)]
+    in_dim = model.q_net.current_embedder.embed_dim + model.q_net.z_dim
+    assert [(m.in_features, m.out_features) for m in linears] == [(in_dim, 24), (24, 12)]
+    assert model.q_net.head.value.in_features == 12
+    before = [m.weight.detach().clone() for m in linears]
+    model.learn(40)
+    assert all(not th.equal(b, m.weight) for b, m in zip(before, linears))  # both layers train
+    model.save(tmp_path / "deep.zip")
+    loaded = IMPORT.load(tmp_path / "deep.zip")
+    for key, value in model.policy.state_dict().items():
+        assert th.equal(value, loaded.policy.state_dict()[key]), key
+    for bad in ((), (24, 0), 0, 12.5, True):
+        with pytest.raises(ValueError, match="q_hidden_dim must be a non-empty list or tuple of positive ints"):
+            small_model(CueMemoryEnv(), policy_kwargs={**SMALL_NET, "q_hidden_dim": bad})
+
+
 def test_every_saved_parameter_but_the_targets_is_trained():
     model = small_model(CueMemoryEnv(), learning_starts=10)
     model.learn(40)

@@ -12,14 +12,15 @@ sequence batch for a given choice of z.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple, Union
 
 import torch as th
 from gymnasium import spaces
 from torch import nn
 
+from dream_envs.checks import check_layer_sizes
 from sb3_dream.common.buffers import SequenceReplayBufferSamples
-from sb3_dream.common.embedders import TRIAL_KEYS, TrialInputEmbedder
+from sb3_dream.common.embedders import TRIAL_KEYS, TrialInputEmbedder, relu_mlp
 from sb3_dream.common.recurrent import DuelingHead
 from sb3_dream.rl2dqn.policies import HistoryQNetwork, RL2DQNPolicy
 from sb3_dream.rl2dqn.rl2dqn import double_dqn_loss_from_q_values, initial_batch_states
@@ -42,7 +43,9 @@ class ConditionedQNetwork(HistoryQNetwork):
 
     :param n_actions: number of discrete actions.
     :param dueling: dueling head (paper) or a single linear Q head.
-    :param q_hidden_dim: the linear layer over ``[e(s); e(i); z]`` (paper: 64).
+    :param q_hidden_dim: the layer over ``[e(s); e(i); z]``: its units (paper: 64), or a list of
+        sizes for several linear + ReLU layers (e.g. ``(256, 256)``, the body of DREAM's measured
+        MetaCook execution network), the head reading the last.
     The other parameters are :class:`HistoryQNetwork`'s; ``z``'s size is ``lstm_hidden_size``.
     """
 
@@ -56,16 +59,18 @@ class ConditionedQNetwork(HistoryQNetwork):
         dueling: bool = True,
         embed_keys: Sequence[str] = TRIAL_KEYS,
         embed_kwargs: Optional[Dict[str, Any]] = None,
-        q_hidden_dim: int = 64,
+        q_hidden_dim: Union[int, Sequence[int]] = 64,
     ) -> None:
         super().__init__(observation_space, fusion_dim, lstm_hidden_size, n_lstm_layers, embed_keys, embed_kwargs)
         self.z_dim = lstm_hidden_size
         # The head is registered right after the encoder, where it stood when it replaced RL²'s: the
         # parameters keep their order, so optimizer states saved before still match them.
-        self.head = DuelingHead(q_hidden_dim, n_actions) if dueling else nn.Linear(q_hidden_dim, n_actions)
+        several = isinstance(q_hidden_dim, (list, tuple))
+        sizes = check_layer_sizes("q_hidden_dim", q_hidden_dim if several else [q_hidden_dim])
+        self.head = DuelingHead(sizes[-1], n_actions) if dueling else nn.Linear(sizes[-1], n_actions)
         keys = [k for k in CURRENT_KEYS if k in embed_keys]
         self.current_embedder = TrialInputEmbedder(observation_space, keys=keys, **(embed_kwargs or {}))
-        self.q_hidden = nn.Sequential(nn.Linear(self.current_embedder.embed_dim + self.z_dim, q_hidden_dim), nn.ReLU())
+        self.q_hidden, _ = relu_mlp(self.current_embedder.embed_dim + self.z_dim, sizes)
 
     def q_values(self, obs: Dict[str, th.Tensor], z: th.Tensor) -> th.Tensor:
         """Q(s_t, i, z, .): ``obs[k]`` ``[*batch, ...]`` and ``z`` ``[*batch, z_dim]`` -> ``[*batch, A]``."""

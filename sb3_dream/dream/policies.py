@@ -24,7 +24,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.common.utils import polyak_update
 from torch import nn
 
-from dream_envs.checks import check_bool, check_non_negative, check_positive_int
+from dream_envs.checks import check_bool, check_layer_sizes, check_non_negative, check_positive_int
 from sb3_dream.common.embedders import (
     DistinctFrames,
     ImageEmbedder,
@@ -154,11 +154,7 @@ class ExecutionQNetwork(nn.Module):
         image_downsample: int = 1,
     ) -> None:
         super().__init__()
-        positive = lambda h: isinstance(h, (int, np.integer)) and not isinstance(h, bool) and h >= 1  # noqa: E731
-        if not (isinstance(hidden_sizes, (list, tuple)) and len(hidden_sizes) > 0 and all(map(positive, hidden_sizes))):
-            raise ValueError(
-                f"execution_hidden_sizes must be a non-empty list or tuple of positive ints, got {hidden_sizes!r}"
-            )
+        hidden_sizes = check_layer_sizes("execution_hidden_sizes", hidden_sizes)
         self.state_embed = make_state_embedder(observation_space["obs"], image_downsample=image_downsample)
         instruction_nvec = observation_space["instruction"].nvec
         # the paper's MLP is the embedder's default; without it, the per-dimension tables alone
@@ -177,7 +173,7 @@ class ExecutionQNetwork(nn.Module):
         if self.recurrent_size > 0:
             self.lstm = nn.LSTM(embed_dim, self.recurrent_size, batch_first=True)
             embed_dim = self.recurrent_size
-        self.body, width = relu_mlp(embed_dim + z_dim, [int(h) for h in hidden_sizes])
+        self.body, width = relu_mlp(embed_dim + z_dim, hidden_sizes)
         self.head = DuelingHead(width, n_actions)
 
     @property

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, Optional, Sequence, Union
 
 import numpy as np
 import torch as th
@@ -36,7 +36,7 @@ class IMPORTQNetwork(ConditionedQNetwork):
         dueling: bool = True,
         embed_keys: Sequence[str] = TRIAL_KEYS,
         embed_kwargs: Optional[Dict[str, Any]] = None,
-        q_hidden_dim: int = 64,
+        q_hidden_dim: Union[int, Sequence[int]] = 64,
         problem_nvec: Optional[Sequence[int]] = None,
         problem_per_dim: int = 32,
         problem_hidden_dim: int = 256,
