@@ -506,15 +506,17 @@ def test_finished_runs_are_found_from_their_records_whatever_split_they_evaluate
 
 
 def _scripted_evaluations(monkeypatch, means):
-    """Make every meta-test return ``means[(split, env_steps of the model)]`` (a real evaluation is
-    run and its returns replaced), so that which evaluation is best is known in advance."""
+    """Make every meta-test of a model return ``means[(split, env_steps of the model)]`` (a real
+    evaluation is run and its returns replaced), so that which evaluation is best is known in
+    advance. The end-of-run diagnosis's privileged agents are played as they are."""
     import sb3_dream.evaluation as evaluation
 
     real = evaluation.evaluate_meta
 
     def scripted(agent, env, n_trials=100, split="test", **kwargs):
         result = real(agent, env, n_trials=n_trials, split=split, **kwargs)
-        result.returns = np.full_like(result.returns, means[(split, agent.num_timesteps)])
+        if hasattr(agent, "num_timesteps"):  # a model, not a diagnosis's agent
+            result.returns = np.full_like(result.returns, means[(split, agent.num_timesteps)])
         return result
 
     monkeypatch.setattr(evaluation, "evaluate_meta", scripted)
