@@ -38,6 +38,11 @@ def cpu_kernels() -> str:
     return f"{th.backends.cpu.get_cpu_capability()} {vendor}"
 
 
+def expected_digest(name: str) -> str:
+    """The digest recorded for run ``name`` on this CPU's kernels (the first recording's elsewhere)."""
+    return EXPECTED_BY_CPU.get(cpu_kernels(), EXPECTED)[name]
+
+
 on_recorded_stack = pytest.mark.skipif(
     (th.__version__.split("+")[0], platform.machine()) != RECORDED_ON,
     reason=f"digests recorded with torch {RECORDED_ON[0]} on {RECORDED_ON[1]}",
@@ -81,7 +86,7 @@ def test_dream_training_is_bit_identical_to_the_recorded_run(options, expected):
     env = make_vec_env("MetaBus-v0", n_envs=n_envs, seed=0, env_kwargs={"variant": "map"})
     model = DREAM(env, seed=0, **DREAM_SHORT, **options)
     model.learn(1200)
-    assert digest(model, "MetaBus-v0", variant="map") == EXPECTED_BY_CPU.get(cpu_kernels(), EXPECTED)[expected]
+    assert digest(model, "MetaBus-v0", variant="map") == expected_digest(expected)
 
 
 @on_recorded_stack
@@ -105,7 +110,7 @@ def test_rl2dqn_training_is_bit_identical_to_the_recorded_run(policy_kwargs, exp
         policy_kwargs=policy_kwargs,
     )
     model.learn(1200)
-    assert digest(model, "MetaBus-v0", variant="map") == EXPECTED_BY_CPU.get(cpu_kernels(), EXPECTED)[expected]
+    assert digest(model, "MetaBus-v0", variant="map") == expected_digest(expected)
 
 
 #: the first recording's digests (serve every CPU not in EXPECTED_BY_CPU)
