@@ -66,8 +66,13 @@ def main() -> None:
     parser.add_argument("--env", default="MetaBus-v0")
     parser.add_argument("--variant", default="map", help="the env's variant argument")
     parser.add_argument("--algos", nargs="+", default=list(ALGOS), choices=list(ALGOS))
-    parser.add_argument("--variants", nargs="+", default=["auto"], choices=DECODER_LOSS_METHODS,
-                        help="VariBAD's decoder-loss methods to time")
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=["auto"],
+        choices=DECODER_LOSS_METHODS,
+        help="VariBAD's decoder-loss methods to time",
+    )
     parser.add_argument("--fill", type=int, default=2000, help="env steps of acting before learning starts")
     parser.add_argument("--updates", type=int, default=10, help="updates per entry per round")
     parser.add_argument("--rounds", type=int, default=7)
@@ -85,9 +90,11 @@ def main() -> None:
 
     timed = [(name, run(models[name.split("[")[0]]), set_up) for name, set_up in todo]
     times = interleaved_rounds(timed, args.rounds, args.updates)
-    print(f"{args.env} variant={args.variant}, {args.threads} torch thread(s), batch "
-          f"{next(iter(models.values())).batch_size}; medians of {args.rounds} interleaved rounds of "
-          f"{args.updates} updates")
+    print(
+        f"{args.env} variant={args.variant}, {args.threads} torch thread(s), batch "
+        f"{next(iter(models.values())).batch_size}; medians of {args.rounds} interleaved rounds of "
+        f"{args.updates} updates"
+    )
     print(f"{'entry':<20} {'ms/update':>10} {'x first':>9}   (min - max)")
     first = summary(times[todo[0][0]])[0]
     for name, _ in todo:

@@ -218,8 +218,11 @@ def compare_updates(
         models[name] = model
     keys = [(name, n_threads) for n_threads in threads for name in models]
     entries = [
-        (f"{name}@{n_threads}", lambda m=models[name]: m.train(n_updates, m.batch_size),
-         lambda n=n_threads: th.set_num_threads(n))
+        (
+            f"{name}@{n_threads}",
+            lambda m=models[name]: m.train(n_updates, m.batch_size),
+            lambda n=n_threads: th.set_num_threads(n),
+        )
         for name, n_threads in keys
     ]
     times = interleaved_rounds(entries, rounds, units=n_updates)

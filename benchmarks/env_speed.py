@@ -1,6 +1,6 @@
 """Steps per second of each trial env alone and under ``make_vec_env(n_envs=8)`` (random actions).
 
-    python benchmarks/env_speed.py [--steps 20000] [--n-envs 8] [--env MetaBus-v0]
+python benchmarks/env_speed.py [--steps 20000] [--n-envs 8] [--env MetaBus-v0]
 """
 
 from __future__ import annotations

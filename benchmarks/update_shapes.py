@@ -50,8 +50,10 @@ def main() -> None:
     times = {int(name): values for name, values in interleaved_rounds(entries, args.rounds, args.updates).items()}
     base = args.batch_sizes[0]
     base_ms = np.median(times[base])
-    print(f"{args.env} {env_kwargs or ''} preset {args.preset}, {args.threads} torch thread(s), "
-          f"parallel updates {model.updates_in_parallel}; medians of {args.rounds} interleaved rounds")
+    print(
+        f"{args.env} {env_kwargs or ''} preset {args.preset}, {args.threads} torch thread(s), "
+        f"parallel updates {model.updates_in_parallel}; medians of {args.rounds} interleaved rounds"
+    )
     print(f"{'batch':>6} {'ms/update':>10} {'us/sample':>10} {'x batch ' + str(base):>12} {'cost per env step':>18}")
     for b in args.batch_sizes:
         ms = np.median(times[b])

@@ -190,7 +190,7 @@ def summary(env: gym.Env, paths: Sequence[ExplorationPath]) -> str:
         if grid.variant == "map":
             parts.append(f"map read in {sum(bool(p.labels('map')) for p in paths)}/{n}")
     else:
-        opened = [len({e.label.split(':')[0] for e in p.events}) for p in paths]
+        opened = [len({e.label.split(":")[0] for e in p.events}) for p in paths]
         parts = [f"fridges opened {np.mean(opened):.1f} (all 3 in {sum(k == 3 for k in opened)}/{n})"]
     return ", ".join(parts) + f", {length:.1f} steps"
 

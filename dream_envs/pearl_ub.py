@@ -256,9 +256,7 @@ def _bus_rules(env) -> ThompsonRules:
     for colored in range(24):
         routes = env.routes(colored)
         destinations[colored] = {s: routes[s] for s in COLORED_STOPS}
-        stops[colored] = [
-            next(s for s in COLORED_STOPS if routes[s] == goal_stop_destination(g)) for g in range(n)
-        ]
+        stops[colored] = [next(s for s in COLORED_STOPS if routes[s] == goal_stop_destination(g)) for g in range(n)]
 
     def behaviours(problem, instruction):
         return [(1.0, stops[problem % 24][instruction[0] - 1])]

@@ -84,7 +84,9 @@ def load_model(path: str, device: str = "cpu") -> Any:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--model", required=True, nargs="+", help="saved DREAM, RL2DQN, IMPORT or VariBAD models (.zip)")
+    parser.add_argument(
+        "--model", required=True, nargs="+", help="saved DREAM, RL2DQN, IMPORT or VariBAD models (.zip)"
+    )
     parser.add_argument("--env", default="MetaBus-v0")
     parser.add_argument(
         "--env-kwargs", nargs="*", default=[], metavar="KEY=VALUE", help="as in training, e.g. variant=map"
@@ -113,7 +115,9 @@ def main() -> None:
         "IMPORT: also on z = e(T), with the distance of e(tau) to e(T)",
     )
     parser.add_argument(
-        "--exploration", action="store_true", help="MetaBus-v0, MetaCook-v0, SignNav3D-v0: what each agent explores and does"
+        "--exploration",
+        action="store_true",
+        help="MetaBus-v0, MetaCook-v0, SignNav3D-v0: what each agent explores and does",
     )
     parser.add_argument(
         "--gains",

@@ -40,7 +40,9 @@ def main() -> None:
     parser.add_argument("target", help="where to write the slim copy")
     args = parser.parse_args()
     slim(args.source, args.target)
-    print(f"{args.target}: {os.path.getsize(args.target) / 1e6:.2f} MB (was {os.path.getsize(args.source) / 1e6:.2f} MB)")
+    print(
+        f"{args.target}: {os.path.getsize(args.target) / 1e6:.2f} MB (was {os.path.getsize(args.source) / 1e6:.2f} MB)"
+    )
 
 
 if __name__ == "__main__":

@@ -242,9 +242,7 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
     q_net = q_network(variant, env.observation_space)
     encoder = ProblemEncoder(env.problem_nvec, Z_DIM)
     # AdamW: Adam with decoupled weight decay; with --weight-decay 0 (the default) it is Adam.
-    optimizer = th.optim.AdamW(
-        [*q_net.parameters(), *encoder.parameters()], lr=args.lr, weight_decay=args.weight_decay
-    )
+    optimizer = th.optim.AdamW([*q_net.parameters(), *encoder.parameters()], lr=args.lr, weight_decay=args.weight_decay)
     generator = th.Generator().manual_seed(seed)
     targets = data["targets"]
     start = time.perf_counter()
@@ -260,9 +258,17 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
         loss.backward()
         optimizer.step()
     seconds = time.perf_counter() - start
-    setting = dict(variant=variant, targets=args.targets, actions=args.actions, lr=args.lr,
-                   weight_decay=args.weight_decay, batch_size=args.batch_size, seed=seed, steps=args.steps,
-                   final_loss=f"{loss.item():.6f}")
+    setting = dict(
+        variant=variant,
+        targets=args.targets,
+        actions=args.actions,
+        lr=args.lr,
+        weight_decay=args.weight_decay,
+        batch_size=args.batch_size,
+        seed=seed,
+        steps=args.steps,
+        final_loss=f"{loss.item():.6f}",
+    )
     results = []
     for split in SPLITS:
         got = greedy_returns(q_net, encoder, pairs[split])
@@ -274,9 +280,15 @@ def probe(variant: str, seed: int, args: argparse.Namespace, data, env, pairs) -
                 groups[f"recipe {a}{b}"] = np.array([r == (a, b) for r in recipes])
         for name, rows in groups.items():
             results.append(
-                dict(**setting, part=name, pairs=int(rows.sum()), greedy_return=f"{got[rows].mean():.3f}",
-                     optimal_return=f"{best[rows].mean():.3f}",
-                     cooked=f"{np.mean(got[rows] >= best[rows] - 1e-6):.3f}", train_seconds=f"{seconds:.0f}")
+                dict(
+                    **setting,
+                    part=name,
+                    pairs=int(rows.sum()),
+                    greedy_return=f"{got[rows].mean():.3f}",
+                    optimal_return=f"{best[rows].mean():.3f}",
+                    cooked=f"{np.mean(got[rows] >= best[rows] - 1e-6):.3f}",
+                    train_seconds=f"{seconds:.0f}",
+                )
             )
     return results
 
@@ -288,17 +300,23 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20000, help="gradient steps")
     parser.add_argument("--batch-size", type=int, default=512)
     parser.add_argument(
-        "--weight-decay", type=float, default=0.0,
+        "--weight-decay",
+        type=float,
+        default=0.0,
         help="decoupled weight decay (AdamW) on the Q-network and the encoder; 0 is plain Adam",
     )
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     parser.add_argument(
-        "--targets", default="optimal", choices=("optimal", "bootstrapped"),
+        "--targets",
+        default="optimal",
+        choices=("optimal", "bootstrapped"),
         help="regress onto Q* (optimal) or onto r + gamma max Q(s') of the network itself, recomputed "
         "every --target-update steps (bootstrapped, as DQN with a target network)",
     )
     parser.add_argument(
-        "--actions", default="all", choices=("all", "one"),
+        "--actions",
+        default="all",
+        choices=("all", "one"),
         help="regress every action's value per sampled state, or one uniformly drawn action's (as DQN's replay)",
     )
     parser.add_argument("--target-update", type=int, default=500, help="steps between bootstrapped targets")

@@ -51,7 +51,9 @@ def played_side_by_side():
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "opengl: builds SignNav3D-v0, which needs OpenGL (skipped, with the reason, without it)")
+    config.addinivalue_line(
+        "markers", "opengl: builds SignNav3D-v0, which needs OpenGL (skipped, with the reason, without it)"
+    )
 
 
 def pytest_collection_modifyitems(config, items):

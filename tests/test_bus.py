@@ -92,7 +92,7 @@ def test_moves_clip_at_the_border_and_other_actions_stay():
     steps = run(env, [UP] * 5 + [RIGHT, DOWN])
     assert [pos(s[0]) for s in steps] == [(0, 5), (0, 6), (0, 7), (0, 8), (0, 8), (1, 8), (1, 7)]
     for a in (NOOP, RIDE, PICKUP, DROP):  # (1, 7) holds no bus: riding does nothing
-        (obs, *_), = run(env, [a])
+        ((obs, *_),) = run(env, [a])
         assert pos(obs) == (1, 7)
 
 
@@ -104,11 +104,11 @@ def test_colored_buses_ride_both_ways(variant: str):
         approach = {(4, 5): UP, (5, 4): RIGHT, (3, 4): LEFT, (4, 3): DOWN}
         for i, stop in enumerate(COLORED_STOPS):
             env.reset(options={"problem_id": problem_id})
-            (obs, *_), = run(env, [approach[stop]])
+            ((obs, *_),) = run(env, [approach[stop]])
             assert pos(obs) == stop and obs["obs"][2] == 1  # a bus is under the agent
-            (obs, *_), = run(env, [RIDE])
+            ((obs, *_),) = run(env, [RIDE])
             assert pos(obs) == COLORED_DESTINATIONS[perm[i]] and obs["obs"][2] == 1
-            (obs, *_), = run(env, [RIDE])
+            ((obs, *_),) = run(env, [RIDE])
             assert pos(obs) == stop
 
 
@@ -125,9 +125,9 @@ def test_gray_buses_lead_to_the_gray_permutation():
         env.reset(options={"problem_id": problem_id})
         obs = run(env, approach[stop])[-1][0]
         assert pos(obs) == stop and obs["obs"][2] == 1
-        (obs, *_), = run(env, [RIDE])
+        ((obs, *_),) = run(env, [RIDE])
         assert pos(obs) == GRAY_DESTINATIONS[gray[i]] and obs["obs"][2] == 1
-        (obs, *_), = run(env, [RIDE])
+        ((obs, *_),) = run(env, [RIDE])
         assert pos(obs) == stop
     # Without gray buses (map, vanilla) those cells hold nothing and riding there stays put.
     env = make("vanilla")
@@ -190,7 +190,7 @@ def test_step_costs_goal_reward_and_termination():
     steps = run(env, [LEFT] * 4 + [DOWN] * 3)
     assert [s[1] for s in steps] == pytest.approx([-0.1] * 7)
     assert not any(s[3].get("episode_end") for s in steps)
-    (obs, reward, terminated, info), = run(env, [DOWN])
+    ((obs, reward, terminated, info),) = run(env, [DOWN])
     assert reward == pytest.approx(1.0)  # +1, not +0.9
     assert terminated and info["episode_end"] and info["episode_length"] == 11
     assert tuple(info["final_obs"][:2]) == (0, 0)
@@ -211,7 +211,7 @@ def test_end_episode_costs_the_remaining_steps(steps_before: int):
     env = make("distracting")
     start_execution(env, problem_id=11, goal=2)
     run(env, [NOOP] * steps_before)
-    (_, reward, terminated, info), = run(env, [END_EPISODE])
+    ((_, reward, terminated, info),) = run(env, [END_EPISODE])
     assert reward == pytest.approx(-0.1 * (20 - steps_before))
     assert terminated and info["episode_length"] == steps_before + 1
     assert info["execution_returns"] == pytest.approx([-0.1 * steps_before - 0.1 * (20 - steps_before)])
@@ -230,7 +230,7 @@ def test_optimal_execution_is_0_8_and_walking_is_0_3(variant: str):
             obs = run(env, [first, RIDE])[-1][0]
             dx, dy = gx - pos(obs)[0], gy - pos(obs)[1]
             last = {(-1, 0): LEFT, (1, 0): RIGHT, (0, 1): UP, (0, -1): DOWN}[(dx, dy)]
-            (_, _, terminated, info), = run(env, [last])
+            ((_, _, terminated, info),) = run(env, [last])
             assert terminated and info["execution_returns"] == pytest.approx([0.8])
             result = play_trial(env, Walker(), options={"problem_id": problem_id, "instruction": [goal + 1]})
             assert result["execution_returns"] == pytest.approx([0.3])
@@ -287,7 +287,7 @@ def test_reward_free_exploration():
     for obs, reward, terminated, info in steps:
         assert reward == 0.0 and not terminated and not info.get("episode_end")
         assert list(obs["instruction"]) == [0] and obs["prev_reward"][0] == 0.0
-    (obs, reward, _, info), = run(env, [END_EPISODE])  # free while exploring
+    ((obs, reward, _, info),) = run(env, [END_EPISODE])  # free while exploring
     assert reward == 0.0 and info["episode_end"] and info["episode_return"] == 0.0
     assert obs["phase"] == EXECUTION and list(obs["instruction"]) == [1]
 

@@ -326,9 +326,7 @@ def test_image_downsample_pools_every_networks_frames_and_is_saved(tmp_path):
     model.save(tmp_path / "m.zip")
     loaded = DREAM.load(tmp_path / "m.zip")
     assert loaded.policy.image_downsample == 2
-    assert all(
-        th.equal(a, b) for a, b in zip(model.policy.state_dict().values(), loaded.policy.state_dict().values())
-    )
+    assert all(th.equal(a, b) for a, b in zip(model.policy.state_dict().values(), loaded.policy.state_dict().values()))
     with pytest.raises(ValueError, match="image_downsample=2 applies to image observations only"):
         DREAM("MetaBus-v0", policy_kwargs=dict(image_downsample=2))
     with pytest.raises(ValueError, match="image_downsample must be an integer >= 1, got True"):
@@ -438,7 +436,8 @@ def test_execution_reward_counts_group_the_replay_by_problem_and_instruction():
             execution.add(
                 {
                     "states": np.zeros((1, 2)), "next_states": np.zeros((1, 2)),
-                    "instructions": np.array([[instruction]]), "actions": np.array([0]), "rewards": np.array([reward]), "dones": np.array([0.0]),
+                    "instructions": np.array([[instruction]]), "actions": np.array([0]),
+                    "rewards": np.array([reward]), "dones": np.array([0.0]),
                     "slots": np.array([slot_generation[0]]), "generations": np.array([slot_generation[1]]),
                     "steps": np.array([step]),
                 }
@@ -705,9 +704,7 @@ def test_execution_weight_decay_shrinks_the_execution_q_network_alone(tmp_path):
 
     model = DREAM("MetaCook-v0", seed=0, learning_rate=1e-3, policy_kwargs=dict(execution_weight_decay=0.5))
     policy = model.policy
-    execution_q, encoder, decoder = step_on_zero_gradients(
-        policy, (policy.execution_q, policy.encoder, policy.decoder)
-    )
+    execution_q, encoder, decoder = step_on_zero_gradients(policy, (policy.execution_q, policy.encoder, policy.decoder))
     assert shrunk(execution_q)
     assert all(th.equal(p.detach(), b) for b, p in encoder + decoder)
     model.save(tmp_path / "decay.zip")

@@ -110,7 +110,14 @@ def test_meta_test_gains_on_metacook_name_each_fridge_opening(tmp_path):
 def test_meta_test_compares_with_the_oracle(trained, tmp_path):
     model, _ = trained
     out = run_example(
-        "meta_test.py", "--model", str(model), "--env-kwargs", "variant='map'", "--trials", "4", "--outcomes",
+        "meta_test.py",
+        "--model",
+        str(model),
+        "--env-kwargs",
+        "variant='map'",
+        "--trials",
+        "4",
+        "--outcomes",
         cwd=tmp_path,
     )
     assert "split=test (24 problems), 4 trials" in out

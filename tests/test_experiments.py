@@ -366,9 +366,7 @@ def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_
     parent_curve = load_curve(run.curve_path(parent_out))
 
     overrides = tuple(sorted({**dict(kwargs), "target_update_interval": 7, "reward_penalty": 0.1}.items()))
-    child = dataclasses.replace(
-        parent, steps=300, dream_kwargs=overrides, init_from=str(parent_out), save_models=True
-    )
+    child = dataclasses.replace(parent, steps=300, dream_kwargs=overrides, init_from=str(parent_out), save_models=True)
     (record,) = experiments.run_experiments([run], child, out, jobs=1)
     assert record["status"] == "done"
     curve = load_curve(run.curve_path(out))
@@ -697,7 +695,9 @@ def test_e_rl2dqn_trains_and_evaluates_with_rewarded_exploration(tmp_path, monke
 
     def recording_step(self, action):
         if self.phase == 0:
-            seen.append((current[0], self.split, self.reward_free_exploration, int(self._observation()["instruction"][0])))
+            seen.append(
+                (current[0], self.split, self.reward_free_exploration, int(self._observation()["instruction"][0]))
+            )
         return step(self, action)
 
     monkeypatch.setattr(MetaBanditEnv, "step", recording_step)

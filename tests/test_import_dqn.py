@@ -90,8 +90,7 @@ def keys_without_gradient(model, batch) -> list:
     return [
         key
         for key in model.policy.state_dict()
-        if not key.startswith("q_net_target.")
-        and (key not in params or params[key].grad is None)
+        if not key.startswith("q_net_target.") and (key not in params or params[key].grad is None)
     ]
 
 

@@ -11,12 +11,21 @@ import pytest
 import dream_envs
 from dream_envs import pearl_ub
 from dream_envs.pearl_ub import execution_rules, supports, thompson_rules, thompson_value
-from dream_envs.bus import COLORED_STOPS, END_EPISODE, GOALS, MOVES, RIDE, SIZE, goal_stop_destination
-from dream_envs.bus import COLORED_DESTINATIONS, N_ACTIONS
+from dream_envs.bus import (
+    COLORED_DESTINATIONS,
+    COLORED_STOPS,
+    END_EPISODE,
+    GOALS,
+    MOVES,
+    N_ACTIONS,
+    PICKUP,
+    RIDE,
+    SIZE,
+    goal_stop_destination,
+)
+from dream_envs.cook.kitchen import DONE_STAGE, cook_transition, fridge_contents, problem_id_of, recipe_stage
 
 COLORED_DESTINATIONS_INDEX = {d: k for k, d in enumerate(COLORED_DESTINATIONS)}
-from dream_envs.bus import PICKUP
-from dream_envs.cook.kitchen import DONE_STAGE, cook_transition, fridge_contents, problem_id_of, recipe_stage
 
 
 def test_exported():

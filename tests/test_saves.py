@@ -15,8 +15,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_dream import DREAM, RL2DQN, evaluate_meta
 
-SAVER = textwrap.dedent(
-    """
+SAVER = textwrap.dedent("""
     import sys
     import torch
     from sb3_dream import DREAM
@@ -29,8 +28,7 @@ SAVER = textwrap.dedent(
     while True:
         model.save(sys.argv[1])
         model.save_replay_buffer(sys.argv[2])
-    """
-)
+    """)
 
 
 def test_a_save_killed_mid_write_leaves_the_previous_file_intact(tmp_path):

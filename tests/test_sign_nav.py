@@ -392,7 +392,9 @@ def test_exploration_report_tells_how_each_execution_episode_ended(env):
     oracle = sign_nav.exploration_report(env, env.oracle(), n_trials=6, seed=3, **pins)
     assert list(oracle.execution_targets) == list(range(6))
     assert list(oracle.outcome_counts()) == list(sign_nav.EXECUTION_TARGETS)
-    assert all(counts == {"right": 1, "wrong": 0, "ended": 0, "timed out": 0} for counts in oracle.outcome_counts().values())
+    assert all(
+        counts == {"right": 1, "wrong": 0, "ended": 0, "timed out": 0} for counts in oracle.outcome_counts().values()
+    )
     assert "execution by target (right/wrong/ended/timed out): blue ball 1/0/0/0, blue key 1/0/0/0" in oracle.summary()
 
     idle = sign_nav.exploration_report(env, EndExploration(), n_trials=6, seed=3, **pins)

@@ -231,7 +231,7 @@ def test_chunked_decoder_loss_on_hand_batches_and_edge_cases():
     obs = batch.observations["obs"]
     sums = decoder.pair_squared_errors(z, obs[:, :2], batch.actions, targets, weights, chunk_elements=1)
     r_hat, s_hat = decoder.forward_pairs(z, obs[:, :2], batch.actions)
-    reference = (((th.cat([r_hat.unsqueeze(-1), s_hat], -1) - targets.unsqueeze(1)) ** 2) * weights.unsqueeze(-1))
+    reference = ((th.cat([r_hat.unsqueeze(-1), s_hat], -1) - targets.unsqueeze(1)) ** 2) * weights.unsqueeze(-1)
     reference = reference.sum((0, 1, 2))
     assert th.allclose(sums, reference, rtol=1e-5)
     coefs = th.randn(3)

@@ -93,8 +93,11 @@ class CookReport:
     def summary(self) -> str:
         counts = np.bincount(self.fridges_opened, minlength=N_FRIDGES + 1)
         held_out = self.by_recipe()
-        per_recipe = "" if not held_out else "; held-out recipes finished (optimally): " + ", ".join(
-            f"{recipe} {share}" for recipe, share in held_out.items()
+        per_recipe = (
+            ""
+            if not held_out
+            else "; held-out recipes finished (optimally): "
+            + ", ".join(f"{recipe} {share}" for recipe, share in held_out.items())
         )
         return (
             f"fridges opened while exploring {self.fridges_opened.mean():.2f} (trials with 0..3: {counts.tolist()}), "

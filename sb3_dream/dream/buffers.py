@@ -246,9 +246,7 @@ class ExecutionBuffer:
             rows[:, k] = np.where(going, self.next_in_episode[np.maximum(previous, 0)], -1)
         return rows
 
-    def batch(
-        self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray, n_step: int = 1
-    ) -> ExecutionBatch:
+    def batch(self, idx: np.ndarray, slots: np.ndarray, trajectories: np.ndarray, n_step: int = 1) -> ExecutionBatch:
         """Transitions ``idx``; transition j reads trajectory ``trajectories[j]`` of ``slots``.
 
         ``n_step > 1``: with each transition's n-step window (``window_*``): s' is then the last

@@ -136,9 +136,7 @@ def _checkpoint_files(run: Run, config: RunConfig, out: pathlib.Path) -> Dict[st
     if not config.checkpoint_freq or checkpointer.load() is None:
         return {}
     return {
-        rel: data
-        for rel, data in _run_files(run, out).items()
-        if pathlib.PurePath(rel).parent.name == "checkpoints"
+        rel: data for rel, data in _run_files(run, out).items() if pathlib.PurePath(rel).parent.name == "checkpoints"
     }
 
 

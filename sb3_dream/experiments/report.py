@@ -178,7 +178,7 @@ def _base_algo(algo: str) -> str:
     spec = ALGORITHMS.get(algo)
     if spec is not None:
         return spec.variant_of or algo
-    return algo[len(REWARDED_EXPLORATION_PREFIX):] if algo.startswith(REWARDED_EXPLORATION_PREFIX) else algo
+    return algo[len(REWARDED_EXPLORATION_PREFIX) :] if algo.startswith(REWARDED_EXPLORATION_PREFIX) else algo
 
 
 def summarize(

@@ -83,9 +83,7 @@ class ProblemSequenceReplayBuffer(SequenceReplayBuffer):
         self.use_problem[row] = self._stage_use_problem[e]
         super()._commit(e, trial_over)
 
-    def _get_samples(  # type: ignore[override]
-        self, batch_inds: np.ndarray, env: Any = None
-    ) -> ProblemSequenceSamples:
+    def _get_samples(self, batch_inds: np.ndarray, env: Any = None) -> ProblemSequenceSamples:  # type: ignore[override]
         base = super()._get_samples(batch_inds, env)
         return ProblemSequenceSamples(
             *base,
