@@ -14,9 +14,10 @@ zoo name        algorithm                               default hyperparameter f
 ``varibad``     :class:`sb3_dream.varibad.VariBAD`      ``sb3_dream/zoo/hyperparams/varibad.yml``
 ==============  ======================================  ==========================================
 
-``dream`` and ``rl2_dqn`` also ship ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings
-measured``): the settings of the README's measured runs (their results:
-``docs/results/README.md``); IMPORT and VariBAD have no measured runs yet (:data:`MEASURED_ALGOS`).
+Each also ships ``<name>_measured.yml`` (``sb3-dream-zoo train ... --settings measured``): the
+settings of the README's measured runs (:data:`MEASURED_ALGOS`; their results:
+``docs/results/README.md`` and, for the baselines, ``docs/baselines.md``): the ``fast`` schedules
+and 4 envs, with DREAM's options of each env's best runs.
 
 The ``sb3-dream-zoo`` command (:mod:`sb3_dream.zoo.cli`) registers them, imports
 :mod:`dream_envs` (so ``--env MetaBus-v0`` resolves) and runs rl-zoo3's own ``train``,
@@ -42,7 +43,7 @@ from dream_envs.checks import check_choice
 
 HYPERPARAMS_DIR = pathlib.Path(__file__).resolve().parent / "hyperparams"
 ZOO_ALGOS = ("dream", "rl2_dqn", "import_dqn", "varibad")
-MEASURED_ALGOS = ("dream", "rl2_dqn")  # the algorithms with a "measured" file (the README's runs)
+MEASURED_ALGOS = ZOO_ALGOS  # the algorithms with a "measured" file (the README's runs)
 LAPTOP_ALGOS = ("dream",)  # the algorithms with a "laptop" file (sb3_dream.PRESETS["laptop"])
 #: the packaged hyperparameter files: each setting and the algorithms that have it
 SETTINGS_ALGOS = {"paper": ZOO_ALGOS, "measured": MEASURED_ALGOS, "laptop": LAPTOP_ALGOS}
