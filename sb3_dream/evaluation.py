@@ -349,8 +349,9 @@ class MetaEvalCallback(BaseCallback):
 
     Logger keys: ``eval/execution_return`` (mean over trials and execution episodes),
     ``eval/execution_return_ci``, ``eval/execution_return_ep{j}`` for j >= 1 when
-    ``n_exec_episodes > 1``, ``eval/exploration_length``. With ``csv_path`` it also appends a row
-    ``env_steps, wall_clock_s, mean, ci, exploration_length`` per evaluation (a learning curve).
+    ``n_exec_episodes > 1``, ``eval/exploration_length`` (``eval/`` is ``log_prefix``). With
+    ``csv_path`` it also appends a row ``env_steps, wall_clock_s, mean, ci, exploration_length``
+    per evaluation (a learning curve).
 
     :param eval_freq: evaluate every this many env steps (counted over all envs), and once at the
         start and the end of training.
@@ -369,6 +370,9 @@ class MetaEvalCallback(BaseCallback):
         weights them by their probability (see :func:`evaluate_meta`): the curve then shows the
         split's expected return, not a 100-trial draw's (``n_trials`` is then a minimum: whole
         passes over the pairs). The CSV's ``ci`` is NaN after a single pass.
+    :param log_prefix: the start of its logger keys (default ``"eval/"``, SB3's ``EvalCallback``'s):
+        callbacks that evaluate different splits of one model need different ones, e.g.
+        ``"eval_train/"`` for the training split, or each overwrites the other's values.
     """
 
     def __init__(
@@ -386,10 +390,14 @@ class MetaEvalCallback(BaseCallback):
         n_envs: int = 16,
         best_ties: str = "first",
         exhaustive: bool = False,
+        log_prefix: str = "eval/",
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
         self.best_ties = check_choice("best_ties", best_ties, BEST_TIES)
+        if not isinstance(log_prefix, str) or not log_prefix:
+            raise ValueError(f"log_prefix must be a non-empty string such as 'eval/', got {log_prefix!r}")
+        self.log_prefix = log_prefix
         self.eval_freq = check_positive_int("eval_freq", eval_freq)
         self.n_trials = check_positive_int("n_trials", n_trials)
         self.n_exec_episodes = check_positive_int("n_exec_episodes", n_exec_episodes)
@@ -474,12 +482,13 @@ class MetaEvalCallback(BaseCallback):
             "exploration_length": result.mean_exploration_length,
         }
         self.results.append(row)
-        self.logger.record("eval/execution_return", result.mean)
-        self.logger.record("eval/execution_return_ci", result.ci)
-        self.logger.record("eval/exploration_length", result.mean_exploration_length)
+        key = self.log_prefix
+        self.logger.record(f"{key}execution_return", result.mean)
+        self.logger.record(f"{key}execution_return_ci", result.ci)
+        self.logger.record(f"{key}exploration_length", result.mean_exploration_length)
         if self.n_exec_episodes > 1:
             for j, m in enumerate(result.per_episode_mean, start=1):
-                self.logger.record(f"eval/execution_return_ep{j}", float(m))
+                self.logger.record(f"{key}execution_return_ep{j}", float(m))
         self.logger.dump(self.num_timesteps)
         if self._is_best(result.mean):
             self.best_mean_reward, self.best_env_steps = float(result.mean), int(self.num_timesteps)

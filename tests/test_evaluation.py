@@ -111,6 +111,8 @@ def test_bad_input():
         MetaEvalCallback("MetaBandit-v0", n_envs=0)
     with pytest.raises(ValueError, match="best_ties='latest' is not valid; accepted values: 'first', 'last'"):
         MetaEvalCallback("MetaBandit-v0", best_ties="latest")
+    with pytest.raises(ValueError, match="log_prefix must be a non-empty string such as 'eval/', got ''"):
+        MetaEvalCallback("MetaBandit-v0", log_prefix="")
     with pytest.raises(ValueError, match="env must not be an empty list"):
         evaluate_meta(FirstActionModel(), [])
     with pytest.raises(ValueError, match="split"):

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import json
 import os
+import shutil
 import time
 import zipfile
 
@@ -351,6 +352,66 @@ def test_a_complete_run_is_extended_by_a_larger_budget_and_redone_by_force(tmp_p
     assert record["status"] == "done"
     assert json.loads(run.info_path(out).read_text())["resumed_from"] is None
     assert load_curve(run.curve_path(out))["env_steps"].tolist() == [0, 100, 200]
+
+
+def _tensorboard_scalars(folder):
+    """{tag: [(step, value), ...]} over the event files in ``folder``."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder))
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def test_tensorboard_logs_each_split_under_its_own_keys_and_an_extended_run_goes_on_in_its_log(tmp_path, capsys):
+    pytest.importorskip("tensorboard")
+    out = tmp_path / "results"
+
+    def config(steps, tensorboard=True):
+        return RunConfig(
+            steps=steps, eval_freq=20, eval_trials=2, eval_splits=("test", "train"), n_envs=2, checkpoint_freq=20,
+            tensorboard=tensorboard, dream_kwargs=tuple(sorted(parse_kwargs(TINY_DREAM, "dream").items())),
+        )  # fmt: skip
+
+    run = Run("dream_no_bottleneck", EnvSpec.parse("MetaBandit-v0"), 1)
+    experiments.run_experiments([run], config(40), out, jobs=1)
+    logs = run.tensorboard_folder(out)
+    assert [p.name for p in logs.iterdir()] == [f"{run.name}_1"]
+    scalars = _tensorboard_scalars(logs / f"{run.name}_1")
+    # the held-out split as SB3's eval/, the training split beside it, each the value its curve has
+    for key, split in (("eval", "test"), ("eval_train", "train")):
+        curve = load_curve(run.curve_path(out, split))
+        logged = scalars[f"{key}/execution_return"]
+        assert [step for step, _ in logged] == curve["env_steps"].tolist() == [0, 20, 40]
+        np.testing.assert_allclose([value for _, value in logged], curve["mean"], rtol=1e-6)
+    assert "train/decoder_loss" in scalars  # the model's own keys (rollout/ too, every log_interval trials)
+    assert "tensorboard" not in config(40).settings("dream_no_bottleneck")  # how it is watched, not trained
+
+    # A larger budget goes on from the kept checkpoint, in the same log.
+    experiments.run_experiments([run], config(60), out, jobs=1)
+    assert [p.name for p in logs.iterdir()] == [f"{run.name}_1"]
+    steps = [step for step, _ in _tensorboard_scalars(logs / f"{run.name}_1")["eval/execution_return"]]
+    assert steps == [0, 20, 40, 60]
+    # and where it goes on without its log (on another node, as with --backend ray), still in _1
+    shutil.rmtree(logs)
+    experiments.run_experiments([run], config(80), out, jobs=1)
+    assert [p.name for p in logs.iterdir()] == [f"{run.name}_1"]
+    assert [step for step, _ in _tensorboard_scalars(logs / f"{run.name}_1")["eval/execution_return"]] == [80]
+
+    # Started over (--force): a fresh log in place of the old one.
+    experiments.run_experiments([run], config(20), out, jobs=1, force=True)
+    assert [p.name for p in logs.iterdir()] == [f"{run.name}_1"]
+    steps = [step for step, _ in _tensorboard_scalars(logs / f"{run.name}_1")["eval/execution_return"]]
+    assert steps == [0, 20]
+
+
+def test_tensorboard_flag_says_what_to_install_when_tensorboard_is_missing(monkeypatch, tmp_path):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)  # import fails as if not installed
+    with pytest.raises(SystemExit, match="--tensorboard needs tensorboard: pip install tensorboard"):
+        experiments.main(["--algos", "rl2dqn", "--envs", "MetaBandit-v0", "--tensorboard", "--out", str(tmp_path)])
+    assert not any(tmp_path.iterdir())  # no run started
 
 
 def test_init_from_goes_on_from_another_runs_checkpoint_with_other_settings(tmp_path):

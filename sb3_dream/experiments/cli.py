@@ -62,6 +62,10 @@ filesystem that every node mounts at the same path.
     <env>/snapshots/                  the model every N env steps, with --snapshot-freq N (SB3's
                                       CheckpointCallback: <algo>_seed<k>_<steps>_steps.zip, no
                                       replay buffers), to meta-test how a policy changes
+    <env>/tensorboard/<algo>_seed<k>_1/
+                                      with --tensorboard: SB3's TensorBoard log of the run (rollout/
+                                      and train/ keys, the held-out evaluations as eval/, the
+                                      training split's as eval_train/; a resumed run goes on in it)
     <env>/best/<algo>_seed<k>/best_model.zip
                                       with --select-on SPLIT: the model at the evaluation on SPLIT
                                       with the highest return so far, the latest of equal ones
@@ -210,6 +214,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="also save the model (no replay buffers) every N env steps under <env>/snapshots/; 0: off",
     )
     parser.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="SB3's TensorBoard logs under <env>/tensorboard/ (tensorboard --logdir OUT): rollout/, train/, "
+        "and each evaluated split (eval/: held out, eval_<split>/: the others); needs tensorboard installed",
+    )
+    parser.add_argument(
         "--select-on",
         default="",
         choices=("", *all_splits()),
@@ -251,6 +261,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _check_tensorboard() -> None:
+    """--tensorboard needs what SB3 logs with: say so before any run starts."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter  # noqa: F401
+    except ImportError as error:
+        raise ValueError("--tensorboard needs tensorboard: pip install tensorboard") from error
+
+
 def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
     """Run the experiment described by ``argv`` (see ``--help``); return the run records."""
     args = build_parser().parse_args(argv)
@@ -268,6 +286,7 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
             save_models=args.save_models,
             checkpoint_freq=args.checkpoint_freq,
             snapshot_freq=args.snapshot_freq,
+            tensorboard=args.tensorboard,
             select_on=args.select_on,
             select_ties=args.select_ties,
             init_from=args.init_from,
@@ -281,6 +300,8 @@ def main(argv: Optional[Sequence[str]] = None) -> List[Dict[str, Any]]:
         check_presets(runs, config)
         if args.jobs is not None and args.jobs < 1:
             raise ValueError(f"jobs must be an integer >= 1, got {args.jobs}")
+        if args.tensorboard and not args.summary_only:
+            _check_tensorboard()
         backend = None if args.summary_only else _backend(args)
         also = [parse_folder_spec(spec) for spec in args.also]
     except ValueError as error:

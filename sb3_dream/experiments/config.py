@@ -103,6 +103,7 @@ class RunConfig:
     save_models: bool = False
     checkpoint_freq: int = 0
     snapshot_freq: int = 0
+    tensorboard: bool = False
     select_on: str = ""
     select_ties: str = "last"
     # Constructor overrides, sorted (key, value) pairs, one field per AlgorithmSpec.overrides.
@@ -156,7 +157,7 @@ class RunConfig:
     def settings(self, algo: str) -> Dict[str, Any]:
         """What a finished run of ``algo`` records, to warn when a later command asks for other settings."""
         data = dataclasses.asdict(self)
-        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq")
+        unrecorded = ("threads", "device", "save_models", "checkpoint_freq", "snapshot_freq", "tensorboard")
         unrecorded += ("select_on", "select_ties")  # which model is kept, not how it trains
         for key in (*unrecorded, *override_fields()):
             data.pop(key)
@@ -219,6 +220,10 @@ class Run:
     def best_folder(self, out: pathlib.Path) -> pathlib.Path:
         """Where ``--select-on`` keeps the run's best model (``best_model.zip``)."""
         return self.folder(out) / "best" / self.name
+
+    def tensorboard_folder(self, out: pathlib.Path) -> pathlib.Path:
+        """The ``tensorboard_log`` of the run's model with ``--tensorboard``: its log is ``<name>_1`` in it."""
+        return self.folder(out) / "tensorboard"
 
     def checkpoint_path(self, out: pathlib.Path) -> pathlib.Path:
         """The JSON that names a run's last checkpoint (written last, so it is never half made)."""

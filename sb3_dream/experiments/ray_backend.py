@@ -113,13 +113,14 @@ def _ray_task(
 
 def _run_files(run: Run, out: pathlib.Path) -> Dict[str, bytes]:
     """Every file of ``run`` under ``out`` (curves, record, model, checkpoint, best model,
-    snapshots), by path relative to ``out``; unfinished ``.partial`` files left out."""
+    snapshots, TensorBoard log), by path relative to ``out``; unfinished ``.partial`` files left out."""
     folder = run.folder(out)
     paths = [
         *folder.glob(f"{run.name}.*"),
         *folder.glob(f"{run.name}_*.csv"),
         *(folder / "checkpoints").glob(f"{run.name}.*"),
         *(folder / "snapshots").glob(f"{run.name}_*"),
+        *(folder / "tensorboard").glob(f"{run.name}_*/*"),
         *(p for p in run.best_folder(out).rglob("*")),
     ]
     return {

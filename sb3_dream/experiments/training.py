@@ -46,6 +46,8 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
     if resume is None:
         for path in partial.values():
             path.unlink(missing_ok=True)  # an interrupted run starts over
+        for log in run.tensorboard_folder(out).glob(f"{run.name}_*"):
+            shutil.rmtree(log, ignore_errors=True)  # and so does its TensorBoard log
 
     tag = f"{run.algo} {run.env.label} seed {run.seed}"
     init_from, resume_folder = None, checkpointer.folder  # init_from: starting from the parent now
@@ -68,6 +70,11 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
         seconds_before = float(resume["train_seconds"])
         what = "its checkpoint" if init_from is None else f"the checkpoint under {config.init_from}"
         print(f"[{tag}] going on from {what} at {model.num_timesteps} env steps", flush=True)
+    # set on every start, so a resumed run logs where this command says (a saved model keeps its own)
+    model.tensorboard_log = str(run.tensorboard_folder(out)) if config.tensorboard else None
+    if config.tensorboard and resume is not None:
+        # SB3 goes on in the highest <name>_N it finds (or makes _0): make it _1 wherever the run goes on
+        (run.tensorboard_folder(out) / f"{run.name}_1").mkdir(parents=True, exist_ok=True)
     spec = algorithm_spec(run.algo)
     if spec.prepare is not None:
         spec.prepare(model, config.overrides(run.algo), concurrent_runs)
@@ -80,6 +87,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
             csv_path=str(partial[split]),
             best_model_save_path=str(run.best_folder(out)) if split == config.select_on else None,
             best_ties=config.select_ties,
+            log_prefix="eval/" if split == "test" else f"eval_{split}/",
             **_meta_test_kwargs(run, config),
         )
         for split in config.eval_splits
@@ -106,6 +114,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
     model.learn(
         max(config.steps - model.num_timesteps, 0) if resume else config.steps,
         callback=CallbackList(callback_list),
+        tb_log_name=run.name,  # SB3 adds _1, and a resumed run (reset_num_timesteps=False) goes on in it
         reset_num_timesteps=resume is None,
     )
     seconds = seconds_before + time.perf_counter() - start
