@@ -169,6 +169,12 @@ class RunConfig:
         return data
 
 
+def split_suffix(split: str) -> str:
+    """What names a split's curve and logger keys: nothing for the held-out split (``test``), the
+    curve ``<run>.csv`` and SB3's ``eval/``; ``_<split>`` for the others (``<run>_train.csv``, ``eval_train/``)."""
+    return "" if split == "test" else f"_{split}"
+
+
 @dataclasses.dataclass(frozen=True)
 class Run:
     """One (algorithm, env, seed) run and where its files go."""
@@ -208,8 +214,7 @@ class Run:
         return out / self.env.tag
 
     def curve_path(self, out: pathlib.Path, split: str = "test") -> pathlib.Path:
-        suffix = "" if split == "test" else f"_{split}"
-        return self.folder(out) / f"{self.name}{suffix}.csv"
+        return self.folder(out) / f"{self.name}{split_suffix(split)}.csv"
 
     def info_path(self, out: pathlib.Path) -> pathlib.Path:
         return self.folder(out) / f"{self.name}.json"

@@ -24,7 +24,7 @@ from sb3_dream.experiments.checkpoints import (
     make_checkpoint_callback,
     resume_best,
 )
-from sb3_dream.experiments.config import Run, RunConfig
+from sb3_dream.experiments.config import Run, RunConfig, split_suffix
 
 
 def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int = 1) -> Dict[str, Any]:
@@ -87,7 +87,7 @@ def run_one(run: Run, config: RunConfig, out: pathlib.Path, concurrent_runs: int
             csv_path=str(partial[split]),
             best_model_save_path=str(run.best_folder(out)) if split == config.select_on else None,
             best_ties=config.select_ties,
-            log_prefix="eval/" if split == "test" else f"eval_{split}/",
+            log_prefix=f"eval{split_suffix(split)}/",
             **_meta_test_kwargs(run, config),
         )
         for split in config.eval_splits
