@@ -313,3 +313,30 @@ def test_cook_composition_probe_fusions_change_one_place_of_the_wide_parts_netwo
     assert probe.q_network("state_parts", space).state_embed.embed_dim == 6 * 32
     with pytest.raises(ValueError, match="variant='deep' is not one of"):
         probe.q_network("deep", space)
+
+
+def test_cook_q_head_probe_is_rl2s_network_with_one_more_layer_and_trains_through_the_runner(tmp_path):
+    probe = load_example("cook_q_head_probe", RESEARCH)
+    from torch import nn
+
+    from sb3_dream import RL2DQN
+    from sb3_dream.experiments.algorithms import ALGORITHMS
+
+    assert ALGORITHMS[probe.NAME].load_class() is probe.ReluHeadRL2DQN
+    rl2 = RL2DQN("MetaBus-v0", seed=0).policy.q_net
+    model = probe.ReluHeadRL2DQN("MetaBus-v0", seed=0, policy_kwargs={"head_hidden_dim": 32})
+    q_net = model.policy.q_net
+    shapes = {name: p.shape for name, p in rl2.named_parameters() if not name.startswith("head.")}
+    assert {name: p.shape for name, p in q_net.named_parameters() if not name.startswith("head.")} == shapes
+    assert q_net.head[0].in_features == rl2.lstm_hidden_size and q_net.head[0].out_features == 32
+    assert isinstance(q_net.head[1], nn.ReLU) and type(q_net.head[2]) is type(rl2.head)
+    run_example(
+        "cook_q_head_probe.py", "--envs", "MetaBus-v0:variant=map", "--algos", probe.NAME, "--seeds", "0",
+        "--steps", "400", "--n-envs", "2", "--preset", "fast", "--eval-freq", "200", "--eval-trials", "2",
+        "--jobs", "1", "--threads", "1", "--save-models", "--out", "probe", cwd=tmp_path, folder=RESEARCH,
+    )  # fmt: skip
+    folder = tmp_path / "probe" / "MetaBus-v0_variant-map"
+    assert [row["env_steps"] for row in csv.DictReader(open(folder / f"{probe.NAME}_seed0.csv"))] == ["0", "200", "400"]
+    loaded = probe.ReluHeadRL2DQN.load(folder / f"{probe.NAME}_seed0.zip")
+    # the script ran as __main__, so the zip holds its classes by value: the same names and layers
+    assert type(loaded.policy.q_net).__name__ == "ReluHeadQNetwork" and loaded.policy.q_net.head[0].out_features == 64
