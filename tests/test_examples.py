@@ -336,7 +336,8 @@ def test_cook_q_head_probe_is_rl2s_network_with_one_more_layer_and_trains_throug
         "--jobs", "1", "--threads", "1", "--save-models", "--out", "probe", cwd=tmp_path, folder=RESEARCH,
     )  # fmt: skip
     folder = tmp_path / "probe" / "MetaBus-v0_variant-map"
-    assert [row["env_steps"] for row in csv.DictReader(open(folder / f"{probe.NAME}_seed0.csv"))] == ["0", "200", "400"]
+    curve = (folder / f"{probe.NAME}_seed0.csv").read_text().splitlines()
+    assert [row["env_steps"] for row in csv.DictReader(curve)] == ["0", "200", "400"]
     loaded = probe.ReluHeadRL2DQN.load(folder / f"{probe.NAME}_seed0.zip")
     # the script ran as __main__, so the zip holds its classes by value: the same names and layers
     assert type(loaded.policy.q_net).__name__ == "ReluHeadQNetwork" and loaded.policy.q_net.head[0].out_features == 64
